@@ -1,0 +1,30 @@
+# selfseg: two commands on a fresh Debian/Ubuntu machine with Python 3.11.
+#   make demo   install everything, then run the demo on the tiny preset
+#   make test   install everything, then run the whole test suite (what CI runs)
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+DEMO   := runs/demo
+
+.PHONY: demo test install bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "selfseg needs Python 3.11 (bpy 5.0.1); set PYTHON=/path/to/python3.11"'
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+demo: $(STAMP)
+	$(VENV)/bin/generate_scenes --preset tiny --out $(DEMO)/data
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) runs

@@ -1,0 +1,103 @@
+"""Atomic file writes, JSON helpers and content hashing shared by every stage.
+
+Every file selfseg writes goes through these helpers, so an interrupted run never leaves a
+half-written file behind: data goes to a temporary sibling first and is renamed into place.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+
+class FileFormatError(ValueError):
+    """A file exists but cannot be parsed; the message names the file and the problem."""
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _json_default(obj: Any) -> Any:
+    # numpy scalars and arrays without importing numpy at module import time
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def dumps_json(obj: Any, indent: int | None = 1) -> str:
+    """Deterministic JSON (sorted keys) with numpy support."""
+    return json.dumps(obj, indent=indent, sort_keys=True, default=_json_default)
+
+
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> None:
+    """Atomically write ``obj`` as JSON with sorted keys."""
+    atomic_write_text(path, dumps_json(obj, indent) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read a JSON file; a missing or malformed file raises an error naming it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            return json.loads(f.read().decode("utf-8"))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise FileFormatError(f"{path}: not valid JSON ({e})") from None
+
+
+@contextlib.contextmanager
+def atomic_dir(final: str | os.PathLike) -> Iterator[Path]:
+    """Build a folder under a temporary name and rename it to ``final`` only on success.
+
+    ``final`` must not exist yet. On an exception the temporary folder is removed, so a
+    crashed or interrupted run leaves either the complete folder or nothing.
+    """
+    final = Path(final)
+    if final.exists():
+        raise FileExistsError(f"{final}: already exists")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.", suffix=".partial"))
+    try:
+        yield tmp
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def hash_json(obj: Any, n: int = 12) -> str:
+    """Short sha256 of the canonical JSON of ``obj`` (sorted keys, no whitespace)."""
+    return hashlib.sha256(dumps_json(obj, indent=None).encode()).hexdigest()[:n]
+
+
+def hash_file(path: str | os.PathLike, n: int = 16) -> str:
+    """Short sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:n]

@@ -1,0 +1,14 @@
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))  # tests/analytic.py
+
+from analytic import make_dataset, two_box_scenes  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def analytic_dataset(tmp_path_factory) -> Path:
+    """Three ray-cast videos of boxes and a cylinder (6 frames, 160×120), in the real format."""
+    return make_dataset(tmp_path_factory.mktemp("analytic"), two_box_scenes())
