@@ -428,15 +428,34 @@ def _is_ground_truth(path: str, roots: list[Path]) -> bool:
     return False
 
 
-def _audit(event: str, args: tuple) -> None:
+def _check_path(path: Any) -> None:
     roots = getattr(_guard, "roots", None)
-    if not roots or event not in ("open", "os.listdir", "os.scandir"):
-        return
-    path = args[0] if args else None
-    if isinstance(path, (str, bytes, os.PathLike)) and not isinstance(path, int):
+    if roots and isinstance(path, (str, bytes, os.PathLike)):
         path = os.fsdecode(path)
         if _is_ground_truth(path, roots):
             raise GroundTruthAccessError(f"{path}: ground truth is off limits here (self-supervised path)")
+
+
+def _audit(event: str, args: tuple) -> None:
+    if event in ("open", "os.listdir", "os.scandir") and args:
+        _check_path(args[0])
+
+
+def _guard_cv2_readers() -> None:
+    """OpenCV reads files in C++, out of the audit hook's sight: check its readers' paths too."""
+    import cv2
+
+    for name in ("imread", "imreadmulti"):
+        original = getattr(cv2, name)
+        if getattr(original, "_selfseg_guarded", False):
+            continue
+
+        def guarded(filename, *args, _original=original, **kwargs):
+            _check_path(filename)
+            return _original(filename, *args, **kwargs)
+
+        guarded._selfseg_guarded = True
+        setattr(cv2, name, guarded)
 
 
 @contextlib.contextmanager
@@ -444,11 +463,13 @@ def ground_truth_forbidden(*dataset_roots: str | os.PathLike) -> Iterator[None]:
     """Within this block, opening or listing ground truth under the given datasets raises.
 
     Covers every read made through Python (``open``, ``os.listdir``, this module's readers, numpy,
-    json, PIL). The evaluator wraps each method's ``fit`` and ``segment`` calls in it.
+    json, PIL) and OpenCV's ``imread``. The evaluator wraps each method's ``fit`` and ``segment``
+    calls in it.
     """
     global _hook_installed
     if not _hook_installed:
         sys.addaudithook(_audit)
+        _guard_cv2_readers()
         _hook_installed = True
     previous = getattr(_guard, "roots", None)
     _guard.roots = (previous or []) + [Path(os.path.abspath(r)) for r in dataset_roots]

@@ -72,6 +72,10 @@ def test_ground_truth_guard(analytic_dataset):
             lv.inst(0)
         with pytest.raises(ds.GroundTruthAccessError):
             open(analytic_dataset / "videos/000001/scene_gt.json").read()
+        import cv2
+        with pytest.raises(ds.GroundTruthAccessError):
+            cv2.imread(str(analytic_dataset / "videos/000001/mask_inst/000000.png"), cv2.IMREAD_UNCHANGED)
+        assert cv2.imread(str(analytic_dataset / "videos/000001/rgb/000000.png")) is not None
     assert lv.inst(0).shape == (120, 160)  # allowed again outside the block
 
 
