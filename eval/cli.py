@@ -1,0 +1,111 @@
+"""``evaluate``: score a registered method on a dataset under the paper's protocol.
+
+    evaluate --method NAME --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
+             [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
+             [--out results/] [--list-methods]
+
+Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table.
+Errors in the inputs (unknown method, missing dataset, bad config or predictions) print one
+message naming the file or option and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from selfseg.baselines.registry import UnknownMethodError, get_method_class, method_names
+from selfseg.config import ConfigError, load_config
+from selfseg.dataset import Dataset, DatasetError, GroundTruthAccessError
+from selfseg.eval.aggregate import fmt, summarize_folds
+from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, run_fold
+from selfseg.fileio import FileFormatError
+
+TABLE_KEYS = ("P", "R", "IoU", "overlap_F", "boundary_F", "F75")
+
+
+def _parse_folds(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--folds must be comma-separated integers, got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="evaluate", description="Score a segmentation method under the paper's protocol "
+                                "(3-fold CV over videos, every 10th test frame, GT foreground given).")
+    p.add_argument("--method", help="registered method name (see --list-methods)")
+    p.add_argument("--data", type=Path, help="dataset folder")
+    p.add_argument("--config", type=Path, help="YAML file with the method's config")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value (repeatable), e.g. --set distance_m=0.02")
+    p.add_argument("--folds", type=_parse_folds, default=tuple(range(N_FOLDS)), help="folds to run (default 0,1,2)")
+    p.add_argument("--frame-stride", type=int, default=10, help="score every N-th frame of a test video (default 10)")
+    p.add_argument("--limit", type=int, help="at most N test frames per held-out video (quick runs)")
+    p.add_argument("--predictions", type=Path, help="folder of predictions for --method external "
+                   "(<video_id>/<frame_id:06d>.png)")
+    p.add_argument("--name", help="name of this run in results and leaderboards (default: the method name)")
+    p.add_argument("--poses-given", action="store_true", help="give methods ground-truth camera poses (ablation)")
+    p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
+    p.add_argument("--list-methods", action="store_true", help="list registered methods and exit")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def format_table(name: str, records: list[dict]) -> str:
+    """Per-fold rows, then mean ± std over folds and the bootstrap 95% CI of each metric."""
+    head = ["fold", "frames", *TABLE_KEYS, "ms/frame"]
+    rows = [[str(r["fold"]), str(r["metrics"]["n_frames"]), *(fmt(r["metrics"][k]) for k in TABLE_KEYS),
+             f"{r['timings']['ms_per_frame']:.1f}"] for r in records]
+    s = summarize_folds(records)
+    rows.append(["mean±std", str(s["n_frames"]), *(f"{fmt(s['mean'][k])}±{fmt(s['std'][k])}" for k in TABLE_KEYS),
+                 f"{s['ms_per_frame']:.1f}"])
+    rows.append(["95% CI", "", *(f"{fmt(s['ci95'][k][0])}–{fmt(s['ci95'][k][1])}" for k in TABLE_KEYS), ""])
+    widths = [max(len(x) for x in col) for col in zip(head, *rows)]
+    line = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
+    return "\n".join([f"{name} on {records[0]['dataset']['name']}", line(head), *(line(r) for r in rows)])
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.list_methods:
+        for name in method_names():
+            try:
+                doc = (get_method_class(name).__doc__ or "").strip().splitlines()[0]
+            except Exception as e:  # a broken adapter must not hide the others
+                doc = f"(cannot be imported: {e!r})"
+            print(f"{name:20s} {doc}")
+        return 0
+    if not args.method or not args.data:
+        raise ConfigError("--method and --data are required (or use --list-methods)")
+    cls = get_method_class(args.method)
+    overrides = list(args.overrides)
+    if args.predictions is not None:
+        if args.method != "external":
+            raise ConfigError(f"--predictions is only for --method external, not {args.method!r}")
+        overrides.append(f"predictions={args.predictions}")
+    config = load_config(cls.config_cls, args.config, overrides)
+    try:
+        options = EvalOptions(folds=args.folds, frame_stride=args.frame_stride, limit=args.limit, name=args.name,
+                              poses_given=args.poses_given)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    dataset = Dataset(args.data)
+    records = [run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet) for k in options.folds]
+    print(format_table(options.name or args.method, records))
+    print(f"results: {args.out / 'scores' / dataset.name / (options.name or args.method)}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except GroundTruthAccessError as e:
+        print(f"evaluate: error: method {args.method!r} tried to read ground truth: {e}", file=sys.stderr)
+    except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError) as e:
+        print(f"evaluate: error: {e}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
