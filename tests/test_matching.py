@@ -1,0 +1,210 @@
+"""Graph matching: optimality against brute force, pre-filter soundness, planted patterns."""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import itertools
+
+import numpy as np
+import pytest
+
+from selfseg.method.matching import (MatchConfig, SceneGraph, empty_match_cost, match_all, match_batch,
+                                     match_costs, match_graphs, match_stats, prefilter)
+
+
+def brute_force(C: np.ndarray, e1: np.ndarray, e2: np.ndarray, cfg: MatchConfig) -> float:
+    """Minimum J over every injective partial node map, with every possible edge mapped.
+
+    For a fixed node map f the best edge assignment maps exactly the source edges ij whose
+    image (f(i), f(j)) is a target edge (each has cost −c_del_edge < 0).
+    """
+    n1, n2 = C.shape
+    A2 = np.zeros((n2, n2), dtype=bool)
+    A2[e2[:, 0], e2[:, 1]] = A2[e2[:, 1], e2[:, 0]] = True
+    best = empty_match_cost(n1, len(e1), cfg)
+    for r in range(1, min(n1, n2) + 1):
+        perms = np.array(list(itertools.permutations(range(n2), r)))
+        for S in itertools.combinations(range(n1), r):
+            pos = {v: t for t, v in enumerate(S)}
+            cost = C[list(S)][np.arange(r), perms].sum(axis=1) - cfg.c_del_node * r
+            for i, j in e1:
+                if i in pos and j in pos:
+                    cost = cost - cfg.c_del_edge * A2[perms[:, pos[i]], perms[:, pos[j]]]
+            best = min(best, empty_match_cost(n1, len(e1), cfg) + cost.min())
+    return float(best)
+
+
+def check_consistent(r, C, e1, e2, cfg):
+    """The returned maps are a valid match whose cost is r.cost."""
+    assert len(set(r.node_map.values())) == len(r.node_map)
+    E1 = {tuple(sorted(e)) for e in e1.tolist()}
+    E2 = {tuple(sorted(e)) for e in e2.tolist()}
+    for (i, j), (k, l) in r.edge_map:
+        assert (i, j) in E1 and tuple(sorted((k, l))) in E2
+        assert r.node_map[i] == k and r.node_map[j] == l
+    # every source edge whose image is a target edge is mapped (optimality of y given x)
+    mapped = {(i, j) for (i, j), _ in r.edge_map}
+    for i, j in E1:
+        if i in r.node_map and j in r.node_map and tuple(sorted((r.node_map[i], r.node_map[j]))) in E2:
+            assert (i, j) in mapped
+    cost = (empty_match_cost(len(C), len(e1), cfg) + sum(C[i, k] - cfg.c_del_node for i, k in r.node_map.items())
+            - cfg.c_del_edge * len(r.edge_map))
+    assert r.cost == pytest.approx(cost, abs=1e-9)
+
+
+def random_edges(rng, n, p):
+    e = [(i, j) for i in range(n) for j in range(i + 1, n) if rng.random() < p]
+    return np.array(e, dtype=np.int64).reshape(-1, 2)
+
+
+def random_instance(rng, n1, n2, spread=0.35):
+    """Costs concentrated near the deletion cost, so edges decide and ties are common."""
+    C = rng.uniform(0.0, spread, size=(n1, n2))
+    if rng.random() < 0.3:
+        C = np.round(C, 1)  # exact ties
+    return C, random_edges(rng, n1, rng.uniform(0.2, 0.7)), random_edges(rng, n2, rng.uniform(0.2, 0.7))
+
+
+CONFIGS = [MatchConfig(), MatchConfig(lp_first=False), MatchConfig(prefilter=False)]
+
+
+def test_optimal_matches_brute_force():
+    """J equals brute force with the default pipeline and, in turn, with the MILP alone and
+    without the pre-filter."""
+    rng = np.random.default_rng(1)
+    sizes = [(6, 8)] * 4 + [(int(rng.integers(1, 7)), int(rng.integers(1, 9))) for _ in range(26)]
+    n_nonempty = 0
+    for n, (n1, n2) in enumerate(sizes):
+        C, e1, e2 = random_instance(rng, n1, n2)
+        opt = brute_force(C, e1, e2, MatchConfig())
+        for cfg in (CONFIGS[0], CONFIGS[1 + n % 2]):
+            r = match_costs(C, e1, e2, cfg)
+            assert r.status != "time_limit"
+            assert r.cost == pytest.approx(opt, abs=1e-6), (n1, n2, cfg)
+            check_consistent(r, C, e1, e2, cfg)
+        n_nonempty += opt < empty_match_cost(n1, len(e1), MatchConfig()) - 1e-9
+    assert n_nonempty >= 15  # the instances are not trivially empty
+
+
+def test_stacked_batch_is_optimal_per_block():
+    rng = np.random.default_rng(2)
+    problems = [random_instance(rng, 4, 6) for _ in range(10)]
+    cfg = MatchConfig()
+    batch = match_batch(problems, cfg)
+    for (C, e1, e2), r in zip(problems, batch):
+        assert r.cost == pytest.approx(brute_force(C, e1, e2, cfg), abs=1e-6)
+        check_consistent(r, C, e1, e2, cfg)
+
+
+def test_prefilter_is_sound():
+    """Whenever the pre-filter (bound + reduction) declares the empty match optimal, brute
+    force finds nothing better; and the bound does fire on a good share of instances."""
+    rng = np.random.default_rng(3)
+    hits = misses = 0
+    for _ in range(300):
+        n1, n2 = int(rng.integers(2, 6)), int(rng.integers(2, 8))
+        C, e1, e2 = random_instance(rng, n1, n2, spread=rng.uniform(0.1, 0.6))
+        C = C + rng.uniform(0.0, 0.2)  # move the instance across the pre-filter threshold
+        empty, _ = prefilter(C, e1, e2, MatchConfig())
+        if empty:
+            hits += 1
+            assert brute_force(C, e1, e2, MatchConfig()) >= empty_match_cost(n1, len(e1), MatchConfig()) - 1e-12
+        else:
+            misses += 1
+    assert hits >= 60 and misses >= 60
+
+
+def test_reduction_keeps_optimum_reachable():
+    """The pairs kept by the reduction still contain an optimal match (brute force restricted
+    to kept pairs equals the unrestricted optimum)."""
+    rng = np.random.default_rng(6)
+    checked = reduced = 0
+    for _ in range(60):
+        C, e1, e2 = random_instance(rng, int(rng.integers(2, 6)), int(rng.integers(2, 8)))
+        empty, keep = prefilter(C, e1, e2, MatchConfig())
+        if empty:
+            continue
+        checked += 1
+        restricted = np.where(keep, C, 1e3)  # forbidding a pair: its substitution never pays
+        assert brute_force(restricted, e1, e2, MatchConfig()) == pytest.approx(brute_force(C, e1, e2, MatchConfig()))
+        reduced += not keep.all()
+    assert checked >= 20 and reduced >= 10
+
+
+def test_time_limit_is_reported_for_the_hard_block_only():
+    # complete graphs with identical features: many symmetric optima, fractional LP
+    hard = (np.full((9, 12), 0.05), np.array(list(itertools.combinations(range(9), 2))),
+            np.array(list(itertools.combinations(range(12), 2))))
+    rng = np.random.default_rng(7)
+    easy = next(p for p in (random_instance(rng, 4, 6) for _ in range(200))
+                if match_costs(*p, MatchConfig()).status == "milp_optimal")  # small, fractional LP
+    r_hard, r_easy = match_batch([hard, easy], MatchConfig(time_limit_s=0.05))
+    assert r_hard.status == "time_limit" and not r_hard.proven_optimal
+    assert r_easy.status == "milp_optimal" and r_easy.cost == pytest.approx(brute_force(*easy, MatchConfig()))
+
+
+def unit(rng, n, d=16):
+    f = rng.normal(size=(n, d))
+    return f / np.linalg.norm(f, axis=1, keepdims=True)
+
+
+def planted_scene(rng, pattern, n_distract, lure=None):
+    """Pattern nodes (3, with noise) first, then distractors wired to them and to each other."""
+    f = pattern + 0.05 * rng.normal(size=pattern.shape)
+    distract = unit(rng, n_distract)
+    if lure is not None:  # a distractor that looks like pattern node 0 but sits elsewhere
+        distract[0] = lure + 0.05 * rng.normal(size=lure.shape)
+    feats = np.vstack([f, distract])
+    edges = [(0, 1), (1, 2)]
+    edges += [(3 + d, int(rng.integers(0, 3 + d))) for d in range(n_distract)]  # keeps it connected
+    edges = np.unique(np.sort(np.array(edges), axis=1), axis=0)
+    return feats, edges
+
+
+def test_planted_pattern_is_found_and_distractors_are_not():
+    rng = np.random.default_rng(4)
+    pattern = unit(rng, 3)
+    fa, ea = planted_scene(rng, pattern, 6)
+    fb, eb = planted_scene(rng, pattern, 9, lure=pattern[0])
+    perm = rng.permutation(len(fb))  # shuffle node ids of the target
+    inv = np.argsort(perm)
+    fb, eb = fb[perm], np.sort(inv[eb], axis=1)
+    r = match_graphs(fa, ea, fb, eb, MatchConfig())
+    assert r.node_map == {0: int(inv[0]), 1: int(inv[1]), 2: int(inv[2])}
+    assert len(r.edge_map) == 2
+    assert r.cost < 0.1 * (len(fa) + len(ea))
+
+
+def test_match_all_every_component_pair_both_directions():
+    rng = np.random.default_rng(5)
+    pattern = unit(rng, 3)
+    scenes, planted = [], []
+    for s in range(3):
+        fa, ea = planted_scene(rng, pattern, 4)
+        other = unit(rng, 3)  # a second component: a path of unrelated nodes
+        feats = np.vstack([fa, other])
+        edges = np.vstack([ea, [[7, 8], [8, 9]]])
+        comps = [np.arange(7), np.arange(7, 10)]
+        order = rng.permutation(10)  # global ids differ from component order
+        inv = np.argsort(order)
+        planted.append(inv[:3])
+        scenes.append(SceneGraph(f"s{s}", feats[order], np.sort(inv[edges], axis=1),
+                                 [np.sort(inv[c]) for c in comps]))
+    cfg = MatchConfig(workers=1)
+    serial = match_all(scenes, cfg, progress=False)
+    with cf.ThreadPoolExecutor(2) as ex:
+        pooled = match_all(scenes, MatchConfig(pairs_per_task=1), executor=ex, progress=False)
+    assert len(serial) == 3 * 2 * 2 * 2  # ordered scene pairs × component pairs
+    assert {(m.src_scene, m.src_comp, m.tgt_scene, m.tgt_comp) for m in serial} == {
+        (a, i, b, j) for a in range(3) for b in range(3) if a != b for i in range(2) for j in range(2)}
+    assert [m.result.node_map for m in serial] == [m.result.node_map for m in pooled]
+    for m in serial:
+        src, tgt = scenes[m.src_scene], scenes[m.tgt_scene]
+        if m.src_comp == 0 and m.tgt_comp == 0:  # the planted pattern, in global ids
+            for t in range(3):
+                assert m.result.node_map[int(planted[m.src_scene][t])] == int(planted[m.tgt_scene][t])
+        else:  # unrelated random features
+            assert m.result.node_map == {}
+        for i, k in m.result.node_map.items():
+            assert i in src.components[m.src_comp] and k in tgt.components[m.tgt_comp]
+    stats = match_stats(serial)
+    assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0

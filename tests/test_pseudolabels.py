@@ -1,0 +1,116 @@
+"""Pseudo-labels end to end on two small point-cloud scenes, in the three modes, and the merge rule."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from selfseg.fileio import read_json
+from selfseg.method.pruning import MatchDecision, NodeDecision
+from selfseg.method.pseudolabels import PseudoLabelConfig, SceneData, make_pseudo_labels, merge_segments
+from selfseg.method.registration import transform
+from selfseg.method.segment_graph import build_segment_graph
+
+# a three-part object: box, bar and ball in a row, touching
+OBJECT = [trimesh.creation.box((0.06, 0.04, 0.03)),
+          trimesh.creation.cylinder(0.01, 0.08, transform=trimesh.transformations.rotation_matrix(
+              np.pi / 2, (0, 1, 0))).apply_translation((0.07, 0, 0)),
+          trimesh.creation.icosphere(radius=0.025).apply_translation((0.135, 0, 0))]
+
+
+def pose(seed: int, at) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", np.random.default_rng(seed).uniform(0, 2 * np.pi)).as_matrix()
+    T[:3, 3] = at
+    return T
+
+
+def unit(rng, n):
+    f = rng.normal(size=(n, 16))
+    return f / np.linalg.norm(f, axis=1, keepdims=True)
+
+
+def make_scene(scene_id, parts, feats, seed):
+    """parts: list of (mesh, 4×4 pose); features given per part. Segment ids are shuffled."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(parts))  # segment id of part p is order[p]
+    pts, lab = [], []
+    for p, (mesh, T) in enumerate(parts):
+        x = np.asarray(trimesh.sample.sample_surface(mesh, 1500, seed=seed + p)[0])
+        pts.append(transform(x, T))
+        lab.append(np.full(len(x), order[p]))
+    pts.append(rng.uniform(2, 3, size=(10, 3)))  # a few points in no segment
+    lab.append(np.full(10, -1))
+    points, labels = np.vstack(pts), np.concatenate(lab).astype(np.int32)
+    graph = build_segment_graph(points, labels)
+    f = np.empty((len(parts), 16))
+    f[order] = feats + 0.03 * rng.normal(size=feats.shape)
+    return SceneData(scene_id, points, graph, f / np.linalg.norm(f, axis=1, keepdims=True)), order
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    rng = np.random.default_rng(0)
+    proto = unit(rng, 3)
+    TA, TB = pose(1, (0, 0, 0)), pose(2, (0.5, 0.5, 0))
+    far = lambda x: pose(9, (x, -0.6, 0))  # noqa: E731
+    # scene A: the object, a ball touching its box (same component), a lone box
+    touching = trimesh.creation.icosphere(radius=0.02).apply_translation((0, 0.04, 0))
+    a_parts = [(m, TA) for m in OBJECT] + [(touching, TA), (trimesh.creation.box((0.05, 0.05, 0.05)), far(0.0))]
+    a, oa = make_scene("A", a_parts, np.vstack([proto, unit(rng, 2)]), 10)
+    # scene B: the object alone, a lone cylinder, and a lure: a thin rod whose feature looks like the box part
+    b_parts = [(m, TB) for m in OBJECT] + [(trimesh.creation.cylinder(0.02, 0.06), far(0.3)),
+                                           (trimesh.creation.cylinder(0.008, 0.12), far(0.6))]
+    b, ob = make_scene("B", b_parts, np.vstack([proto, unit(rng, 1), proto[:1]]), 20)
+    return [a, b], [oa, ob]
+
+
+def part_labels(scene: SceneData, labels: np.ndarray, order) -> list[int]:
+    """The pseudo-label of each part (all its points must agree)."""
+    out = []
+    for p in range(len(order)):
+        vals = np.unique(labels[scene.graph.labels == order[p]])
+        assert len(vals) == 1
+        out.append(int(vals[0]))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["ours", "v3_no_pruning", "v4_registration_only"])
+def test_pseudo_labels_merge_the_object_only(scenes, mode, tmp_path):
+    data, orders = scenes
+    labels = make_pseudo_labels(data, PseudoLabelConfig(mode=mode), tmp_path, progress=False)
+    for scene, order in zip(data, orders):
+        lab = labels[scene.scene_id]
+        assert lab.dtype == np.int32 and lab.shape == (len(scene.points_w),)
+        assert (lab[scene.graph.labels < 0] == -1).all()
+        parts = part_labels(scene, lab, order)
+        assert parts[0] == parts[1] == parts[2]  # the object's three segments are one object
+        assert len(set(parts[2:])) == len(parts) - 2  # every distractor keeps its own label
+    record = read_json(tmp_path / "matches.json")
+    # the object's two edges, merged in both directions (V4 registers each component pair once)
+    assert record["mode"] == mode and record["n_merged_edges"] >= (2 if mode.startswith("v4") else 4)
+    assert all(p["reason"] for m in record["matches"] for p in m["pairs"])
+    if mode == "ours":  # the lure (a rod with the box part's feature) was matched, then pruned
+        lure = int(orders[1][4])
+        pairs = [(m, p) for m in record["matches"] for p in m["pairs"]]
+        as_src = {p["reason"] for m, p in pairs if m["src_scene"] == "B" and p["src"] == lure}
+        as_tgt = {p["reason"] for m, p in pairs if m["tgt_scene"] == "B" and p["tgt"] == lure}
+        assert as_src == {"precision_recall"}  # a whole (isolated) component: registered, rejected
+        assert as_tgt == {"no_mapped_edge"}  # a lone node pair could merge nothing: not registered
+
+def decision(src_scene, tgt_scene, pairs, edges, rejected=()):
+    return MatchDecision(src_scene, 0, tgt_scene, 0, dict(pairs), edges,
+                         [NodeDecision(i, k, (i, k) not in rejected, "test") for i, k in pairs])
+
+
+def test_merge_follows_accepted_edges_only():
+    d1 = decision(0, 1, [(0, 3), (1, 4), (2, 5)], [((0, 1), (3, 4)), ((1, 2), (4, 5))], rejected={(2, 5)})
+    d2 = decision(1, 0, [(5, 0), (6, 7)], [((5, 6), (0, 7))])  # merges 5+6 in scene 1, 0+7 in scene 0
+    d3 = decision(0, 1, [(8, 1)], [])  # a lone matched pair merges nothing
+    obj0, obj1 = merge_segments([9, 7], [d1, d2, d3])
+    groups = lambda obj: sorted(sorted(np.nonzero(obj == o)[0].tolist()) for o in np.unique(obj))  # noqa: E731
+    assert groups(obj0) == [[0, 1, 7], [2], [3], [4], [5], [6], [8]]
+    assert groups(obj1) == [[0], [1], [2], [3, 4], [5, 6]]
+    assert obj0[0] == 0 and obj0.max() == 6  # renumbered by smallest segment id
