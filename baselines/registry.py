@@ -10,6 +10,18 @@ import importlib
 from selfseg.baselines.base import Method
 
 METHODS: dict[str, str] = {
+    "lccp-frame": "selfseg.baselines.lccp_frame:LCCPFrame",
+    "supervised": "selfseg.baselines.supervised:SupervisedMethod",
+    "v1-disjoint": "selfseg.baselines.supervised:V1DisjointMethod",
+    "oracle": "selfseg.baselines.simple:Oracle",
+    "one-segment": "selfseg.baselines.simple:OneSegment",
+    "fg-components": "selfseg.baselines.simple:ForegroundComponents",
+    "depth-clustering": "selfseg.baselines.simple:DepthClustering",
+    "external": "selfseg.baselines.external:ExternalPredictions",
+    "ours": "selfseg.method.pipeline:Ours",
+    "ours-v2": "selfseg.method.pipeline:OursV2",
+    "ours-v3": "selfseg.method.pipeline:OursV3",
+    "ours-v4": "selfseg.method.pipeline:OursV4",
 }
 
 

@@ -277,6 +277,11 @@ class Video:
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.video_id!r}, {len(self.frame_ids)} frames, {self.width}x{self.height})"
 
+    @property
+    def root(self) -> Path:
+        """The dataset folder (for cache keys; ground-truth files in it stay guarded)."""
+        return self._root
+
     def __len__(self) -> int:
         return len(self.frame_ids)
 

@@ -1,0 +1,228 @@
+"""The self-supervised pipeline of Lu et al. (`ours`) and its Table III ablations, as stages exchanging files.
+
+Per video, shared by every fold and variant (``STAGES/<stage>/<video_id>/``, see
+:class:`selfseg.stages.StageCache`; a re-run reuses every stage whose key still matches):
+
+- ``recon``: camera tracking, TSDF fusion and support-plane removal (:mod:`selfseg.method.recon_stage`);
+- ``overseg``: LCCP + SymSeg over-segmentation of the object points, the segment graph
+  (``segments.npz``) and the segments projected into every frame (``segmaps/{fid:06d}.png``).
+
+Per fold, in the method's workdir (keyed by the settings and the training videos):
+
+- ``phi1-<hash>/``: φ1, trained on the over-segment maps;
+- ``pseudo/all/scenes/``: φ1 segment features (``features/<vid>.npy``), cross-scene matching
+  (``matches.json``), per-point object pseudo-labels (``labels/<vid>.npy``) and their projection into
+  the frames (``maps/<vid>/{fid:06d}.png``);
+- ``net-<hash>/``: φ2, trained on the pseudo-label maps (:class:`EmbeddingMethodBase`).
+
+Label maps on disk are uint16 PNGs: 0 = no label, s + 1 = segment or object s. In memory they are
+int32 with −1 = no label. Everything here reads only unlabeled :class:`~selfseg.dataset.Video`
+objects: ground-truth camera poses are used only with ``recon.use_gt_poses`` (an ablation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from selfseg.config import to_dict
+from selfseg.dataset import Video, read_inst, write_inst
+from selfseg.fileio import hash_json, read_json, write_json
+from selfseg.method.background import BackgroundConfig
+from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConfig, video_key
+from selfseg.method.overseg import OversegConfig, oversegment
+from selfseg.method.projection import project_labels
+from selfseg.method.pseudolabels import PseudoLabelConfig, SceneData, make_pseudo_labels
+from selfseg.method.reconstruct import ReconConfig
+from selfseg.method.recon_stage import load_recon, run_recon_stage
+from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
+from selfseg.method.train import FrameLabelSource, TrainConfig, load_embedding_net, train_embedding
+from selfseg.stages import StageCache
+
+STAGE_VERSION = 1  # bump when a stage's output format or algorithm changes
+
+
+@dataclass
+class ProjectionConfig:
+    """Projection of labelled 3D points into frames (z-buffer with a depth test against the frame's depth)."""
+
+    splat_px: int = 1  # half-size of each point's square splat, pixels
+    depth_tol_m: float = 0.01
+
+
+@dataclass
+class OursConfig(EmbeddingMethodConfig):
+    """Every setting of the pipeline; ``net``, ``train``, ``cluster``, ``frame_stride`` and ``device`` are φ2's."""
+
+    recon: ReconConfig = field(default_factory=ReconConfig)
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    overseg: OversegConfig = field(default_factory=OversegConfig)
+    adjacency_radius_m: float = 0.0075  # segments whose points come this close share a graph edge
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
+    phi1_train: TrainConfig = field(default_factory=TrainConfig)
+    feature_stride: int = 5  # φ1 segment features average every n-th frame
+    pseudo: PseudoLabelConfig = field(default_factory=PseudoLabelConfig)
+    labels: Literal["pseudo", "overseg"] = "pseudo"  # "overseg": V2, φ2 = φ1 trained on LCCP labels
+    stage_dir: str = ""  # per-video stage cache; "" = <workdir>/../../_stages/<dataset folder name>
+
+
+@dataclass
+class OursV2Config(OursConfig):
+    labels: Literal["pseudo", "overseg"] = "overseg"
+
+
+@dataclass
+class OursV3Config(OursConfig):
+    pseudo: PseudoLabelConfig = field(default_factory=lambda: PseudoLabelConfig(mode="v3_no_pruning"))
+
+
+@dataclass
+class OursV4Config(OursConfig):
+    pseudo: PseudoLabelConfig = field(default_factory=lambda: PseudoLabelConfig(mode="v4_registration_only"))
+
+
+def read_label_map(path: str | Path) -> np.ndarray:
+    """uint16 label PNG (0 = none, s + 1 = label s) → int32 map with −1 = none."""
+    return read_inst(path).astype(np.int32) - 1
+
+
+def write_label_maps(out_dir: Path, video: Video, points_w: np.ndarray, labels: np.ndarray,
+                     T_world_cam: dict[int, np.ndarray], cfg: ProjectionConfig, progress: bool = True) -> None:
+    """Project labelled points (world m; labels ≥ 0, −1 skipped) into every frame with a pose."""
+    keep = labels >= 0
+    pts, lab = points_w[keep], labels[keep]
+    for fid in tqdm(video.frame_ids, desc=f"video {video.video_id}: project labels", unit="frame",
+                    disable=not progress, leave=False):
+        if fid not in T_world_cam:
+            continue
+        m = project_labels(pts, lab, video.K(fid), T_world_cam[fid], video.width, video.height,
+                           depth_m=video.depth_m(fid), depth_tol_m=cfg.depth_tol_m, splat_px=cfg.splat_px)
+        write_inst(out_dir / f"{fid:06d}.png", (m + 1).astype(np.uint16))
+
+
+def run_overseg_stage(video: Video, cache: StageCache, cfg: OursConfig, progress: bool = True) -> Path:
+    """Reconstruct (cached) and over-segment one video; returns the stage folder."""
+    recon_dir = run_recon_stage(video, cache, cfg.recon, cfg.background)
+    key = {"version": STAGE_VERSION, "video": video_key(video), "recon": cache.key_hash("recon", video.video_id),
+           "overseg": to_dict(cfg.overseg), "adjacency_radius_m": cfg.adjacency_radius_m,
+           "projection": to_dict(cfg.projection)}
+    if cache.is_valid("overseg", video.video_id, key):
+        return cache.path("overseg", video.video_id)
+    rec = load_recon(recon_dir)
+    # VCCS colour distances use 0–255 like PCL; reconstructed colours are in [0, 1]
+    labels = oversegment(rec.points_w, rec.normals_w, rec.colors * 255.0, rec.occupancy, cfg.overseg)
+    graph = build_segment_graph(rec.points_w, labels, cfg.adjacency_radius_m)
+    with cache.write("overseg", video.video_id, key) as tmp:
+        graph.save(tmp / "segments.npz")
+        write_label_maps(tmp / "segmaps", video, rec.points_w, labels, rec.T_world_cam, cfg.projection, progress)
+        write_json(tmp / "report.json", {"n_points": len(labels), "n_segments": graph.n_segments,
+                                         "n_edges": len(graph.edges), "n_components": len(graph.components())})
+    return cache.path("overseg", video.video_id)
+
+
+def _map_loader(folder_of: dict[str, Path]):
+    """Label loader for :class:`FrameLabelSource`: reads ``folder_of[video_id]/{fid:06d}.png``."""
+    def load(video: Video, fid: int) -> np.ndarray:
+        return read_label_map(folder_of[video.video_id] / f"{fid:06d}.png")
+    return load
+
+
+class Ours(EmbeddingMethodBase):
+    """The paper's method: φ1 on over-segments → graph matching → pseudo-labels → φ2 + mean-shift."""
+
+    name = "ours"
+    config_cls = OursConfig
+
+    def stage_cache(self, videos: list[Video]) -> StageCache:
+        if self.config.stage_dir:
+            return StageCache(self.config.stage_dir)
+        if self.workdir is None:
+            raise ValueError(f"method {self.name!r} needs a workdir or config stage_dir for its stage cache")
+        return StageCache(self.workdir.parent.parent / "_stages" / videos[0].root.name)
+
+    def run_overseg(self, videos: list[Video]) -> StageCache:
+        """Reconstruct and over-segment every video (per-video stages, cached); returns the stage cache."""
+        cache = self.stage_cache(videos)
+        for v in tqdm(videos, desc=f"{self.name}: reconstruct + over-segment", unit="video"):
+            run_overseg_stage(v, cache, self.config)
+        return cache
+
+    def train_phi1(self, videos: list[Video], cache: StageCache) -> Path:
+        """Train φ1 on the over-segment maps of ``videos`` (cached by settings and stage keys); returns its weights."""
+        segmaps = {v.video_id: cache.path("overseg", v.video_id) / "segmaps" for v in videos}
+        source = FrameLabelSource([(v, f, _map_loader(segmaps)) for v in videos for f in self.training_frames(v)])
+        key = {"phi1": to_dict(self.config.phi1_train), "net": to_dict(self.config.net),
+               "frame_stride": self.config.frame_stride,
+               "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
+        return train_embedding(source, self.config.phi1_train, self.config.net, self.workdir / f"phi1-{hash_json(key)}")
+
+    def pseudo_labels(self, videos: list[Video], cache: StageCache, phi1: Path) -> Path:
+        """φ1 segment features, cross-scene matching and merged pseudo-labels of the training videos (cached)."""
+        from selfseg.method.features import segment_features
+
+        cfg = self.config
+        out = StageCache(self.workdir / "pseudo")
+        key = {"version": STAGE_VERSION, "phi1": str(phi1), "pseudo": to_dict(cfg.pseudo),
+               "feature_stride": cfg.feature_stride, "projection": to_dict(cfg.projection),
+               "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
+        if out.is_valid("all", "scenes", key):
+            return out.path("all", "scenes")
+        net = load_embedding_net(phi1, self._device)
+        scenes, recons = [], []
+        for v in tqdm(videos, desc="φ1 segment features", unit="video"):
+            seg_dir = cache.path("overseg", v.video_id)
+            graph = SegmentGraph.load(seg_dir / "segments.npz")
+            frames = v.frame_ids[::cfg.feature_stride]
+            segmaps = {f: read_label_map(seg_dir / "segmaps" / f"{f:06d}.png") for f in frames}
+            feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device)
+            recons.append(load_recon(cache.path("recon", v.video_id)))
+            scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
+        with out.write("all", "scenes", key) as tmp:
+            labels = make_pseudo_labels(scenes, cfg.pseudo, tmp)
+            (tmp / "features").mkdir()
+            (tmp / "labels").mkdir()
+            for v, scene, rec in zip(videos, scenes, recons):
+                np.save(tmp / "features" / f"{v.video_id}.npy", scene.features)
+                np.save(tmp / "labels" / f"{v.video_id}.npy", labels[v.video_id])
+                write_label_maps(tmp / "maps" / v.video_id, v, scene.points_w, labels[v.video_id], rec.T_world_cam,
+                                 cfg.projection)
+        return out.path("all", "scenes")
+
+    def label_source(self, train_videos: list[Video]):
+        cache = self.run_overseg(train_videos)
+        pseudo = self.pseudo_labels(train_videos, cache, self.train_phi1(train_videos, cache))
+        folders = {v.video_id: pseudo / "maps" / v.video_id for v in train_videos}
+        source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)])
+        return source, {"pseudo": read_json(pseudo / "stage.json")["key_hash"]}
+
+    def fit(self, train_videos: list[Video]) -> None:
+        if self.workdir is None:
+            raise ValueError(f"method {self.name!r} needs a workdir to store its stages and networks")
+        if self.config.labels == "overseg":  # V2: the network trained on over-segments is the final one
+            self.load(self.train_phi1(train_videos, self.run_overseg(train_videos)))
+        else:
+            super().fit(train_videos)
+
+
+class OursV2(Ours):
+    """Table III V2: φ2 trained on the LCCP + SymSeg over-segments, no graph matching."""
+
+    name = "ours-v2"
+    config_cls = OursV2Config
+
+
+class OursV3(Ours):
+    """Table III V3: graph matching without pruning."""
+
+    name = "ours-v3"
+    config_cls = OursV3Config
+
+
+class OursV4(Ours):
+    """Table III V4: exhaustive registration instead of graph matching."""
+
+    name = "ours-v4"
+    config_cls = OursV4Config

@@ -1,0 +1,71 @@
+"""End to end through the self-supervised pipeline (`ours`) on ray-cast scenes, no ground truth allowed."""
+import numpy as np
+import pytest
+
+from analytic import make_dataset, two_box_scenes
+from selfseg.config import load_config
+from selfseg.dataset import Dataset, ground_truth_forbidden
+from selfseg.method.pipeline import Ours, OursConfig, OursV2, OursV2Config, read_label_map
+
+FAST = ["net.width=8", "net.aspp_channels=32", "net.decoder_channels=32", "net.low_level_channels=16",
+        "train.steps=6", "train.batch_size=2", "train.crop=[64, 96]", "train.image_size=160",
+        "phi1_train.steps=6", "phi1_train.batch_size=2", "phi1_train.crop=[64, 96]", "phi1_train.image_size=160",
+        "frame_stride=4", "feature_stride=4", "pseudo.match.workers=1"]
+
+
+@pytest.fixture(scope="module")
+def dense_dataset(tmp_path_factory):
+    """Three videos of 20 frames over 30° (1.5° per frame, dense enough to track)."""
+    return make_dataset(tmp_path_factory.mktemp("dense"), two_box_scenes(), n_frames=20, width=160, height=120,
+                        arc_deg=30)
+
+
+def purity(label_map: np.ndarray, inst: np.ndarray) -> float:
+    """Share of labelled object pixels whose label's majority ground-truth instance is their own."""
+    keep = (label_map >= 0) & (inst > 0)
+    good = 0
+    for s in np.unique(label_map[keep]):
+        gt = inst[keep & (label_map == s)]
+        good += np.bincount(gt).max()
+    return good / max(keep.sum(), 1)
+
+
+@pytest.mark.slow
+def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
+    ds = Dataset(dense_dataset)
+    cfg = load_config(OursConfig, overrides=FAST)
+    work = tmp_path / "work" / "ours" / "analytic" / "fold0"
+    train = [ds.video(v) for v in ds.video_ids[:2]]
+    with ground_truth_forbidden(dense_dataset):  # the whole self-supervised path runs under the guard
+        method = Ours(cfg, work)
+        method.fit(train)
+    labeled = ds.labeled("000002")
+    fg = labeled.inst(0) > 0
+    with ground_truth_forbidden(dense_dataset):
+        pred = method.segment(ds.video("000002"), 0, fg)
+    assert pred.shape == fg.shape and (pred[fg] > 0).all() and (pred[~fg] == 0).all()
+
+    stages = work.parent.parent / "_stages" / dense_dataset.name
+    for vid in ds.video_ids[:2]:
+        inst = ds.labeled(vid).inst(10)
+        seg = read_label_map(stages / "overseg" / vid / "segmaps" / "000010.png")
+        assert (seg >= 0).sum() > 0.8 * (inst > 0).sum()  # the projected segments cover the objects
+        assert purity(seg, inst) > 0.9  # and each segment lies on one object
+        pseudo = read_label_map(work / "pseudo" / "all" / "scenes" / "maps" / vid / "000010.png")
+        assert purity(pseudo, inst) > 0.9
+    assert (work / "pseudo" / "all" / "scenes" / "matches.json").is_file()
+
+    # a re-run reuses every cached stage and network
+    before = {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")}
+    again = Ours(cfg, work)
+    with ground_truth_forbidden(dense_dataset):
+        again.fit(train)
+    assert {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
+    assert again.weights_path == method.weights_path
+
+    # V2 shares the per-video stages and uses φ1 as its final network
+    v2 = OursV2(load_config(OursV2Config, overrides=FAST), work.parent.parent.parent / "ours-v2" / "analytic" / "fold0")
+    with ground_truth_forbidden(dense_dataset):
+        v2.fit(train)
+    assert v2.weights_path.parent.name.startswith("phi1-")
+    assert {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
