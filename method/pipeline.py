@@ -7,9 +7,12 @@ Per video, shared by every fold and variant (``STAGES/<stage>/<video_id>/``, see
 - ``overseg``: LCCP + SymSeg over-segmentation of the object points, the segment graph
   (``segments.npz``) and the segments projected into every frame (``segmaps/{fid:06d}.png``).
 
+Per set of training videos, also in the shared stage cache:
+
+- ``phi1/<hash>/``: φ1, trained on the over-segment maps (the hash covers its settings and data).
+
 Per fold, in the method's workdir (keyed by the settings and the training videos):
 
-- ``phi1-<hash>/``: φ1, trained on the over-segment maps;
 - ``pseudo/all/scenes/``: φ1 segment features (``features/<vid>.npy``), cross-scene matching
   (``matches.json``), per-point object pseudo-labels (``labels/<vid>.npy``) and their projection into
   the frames (``maps/<vid>/{fid:06d}.png``);
@@ -66,7 +69,7 @@ class OursConfig(EmbeddingMethodConfig):
     feature_stride: int = 5  # φ1 segment features average every n-th frame
     pseudo: PseudoLabelConfig = field(default_factory=PseudoLabelConfig)
     labels: Literal["pseudo", "overseg"] = "pseudo"  # "overseg": V2, φ2 = φ1 trained on LCCP labels
-    stage_dir: str = ""  # per-video stage cache; "" = <workdir>/../../_stages/<dataset folder name>
+    stage_dir: str = ""  # per-video stage cache; "" = OUT/work/_stages/<dataset folder name> (see stage_cache)
 
 
 @dataclass
@@ -141,7 +144,8 @@ class Ours(EmbeddingMethodBase):
             return StageCache(self.config.stage_dir)
         if self.workdir is None:
             raise ValueError(f"method {self.name!r} needs a workdir or config stage_dir for its stage cache")
-        return StageCache(self.workdir.parent.parent / "_stages" / videos[0].root.name)
+        # workdir is OUT/work/<run>/<dataset>/fold<k>: share OUT/work/_stages/<dataset> across runs and folds
+        return StageCache(self.workdir.parents[2] / "_stages" / videos[0].root.name)
 
     def run_overseg(self, videos: list[Video]) -> StageCache:
         """Reconstruct and over-segment every video (per-video stages, cached); returns the stage cache."""
@@ -157,7 +161,8 @@ class Ours(EmbeddingMethodBase):
         key = {"phi1": to_dict(self.config.phi1_train), "net": to_dict(self.config.net),
                "frame_stride": self.config.frame_stride,
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
-        return train_embedding(source, self.config.phi1_train, self.config.net, self.workdir / f"phi1-{hash_json(key)}")
+        # shared by folds and variants with the same training videos and settings
+        return train_embedding(source, self.config.phi1_train, self.config.net, cache.root / "phi1" / hash_json(key))
 
     def pseudo_labels(self, videos: list[Video], cache: StageCache, phi1: Path) -> Path:
         """φ1 segment features, cross-scene matching and merged pseudo-labels of the training videos (cached)."""

@@ -1,0 +1,227 @@
+"""``evaluate3d``: Table II, the 3-D segmentations of the reconstructed scenes scored against GT points.
+
+    evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
+               [--rows lccp,lccp+symseg,ours-matching] [--quiet]
+
+Rows (each a result record with ``task = "3d"``, named after the row):
+
+- ``lccp``: the LCCP over-segmentation alone (``overseg.use_symseg=False``);
+- ``lccp+symseg``: the pipeline's over-segmentation (LCCP + SymSeg, the ``overseg`` stage);
+- ``ours-matching``: the per-point object pseudo-labels after graph matching and pruning (needs φ1,
+  trained with the config's ``phi1_train`` schedule).
+
+The pipeline (:class:`selfseg.method.pipeline.Ours`) runs on **all** videos of the dataset as one
+unlabeled collection, under :func:`~selfseg.dataset.ground_truth_forbidden`: no labels are used, so
+there are no folds and records carry ``fold = "all"``. Its stages live in the ``evaluate`` layout
+(``OUT/work/ours/<dataset>/foldall``, per-video stages in ``OUT/work/_stages/``), so they are
+shared with ``evaluate --method ours`` runs in the same ``OUT``. The stage cache holds one
+over-segmentation per video (the configured one), so the ``lccp`` row re-runs LCCP in memory on the
+cached reconstruction.
+
+Scoring happens afterwards, outside the guard (:func:`selfseg.eval.points.evaluate_points`). With
+estimated poses the reconstruction's world frame is the first posed camera's frame f0; it is mapped to
+the dataset's world frame by T_gtworld_estworld = T_world_cam_gt(f0) · T_world_cam_est(f0)⁻¹. The
+camera-position and -rotation error left after that alignment (pose drift) is recorded per video.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from selfseg.config import ConfigError, load_config
+from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
+                             invert_T)
+from selfseg.eval.aggregate import fmt
+from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator
+from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, provenance, write_result
+from selfseg.fileio import FileFormatError
+from selfseg.method.overseg import oversegment
+from selfseg.method.pipeline import Ours, OursConfig
+from selfseg.method.recon_stage import ReconStage, load_recon
+from selfseg.method.segment_graph import SegmentGraph
+
+ROWS = ("lccp", "lccp+symseg", "ours-matching")
+FOLD = "all"  # one collection of every video: no labels are used, so there are no folds
+TABLE_KEYS = ("P", "R", "IoU", "overlap_P", "overlap_R", "overlap_F")
+DRIFT_KEYS = ("drift_pos_mean_m", "drift_pos_max_m", "drift_rot_mean_deg")
+
+
+@dataclasses.dataclass
+class SceneSegmentations:
+    """One video's reconstructed object points and each row's per-point labels (−1 = none)."""
+
+    video_id: str
+    recon: ReconStage
+    labels: dict[str, np.ndarray]
+
+
+def row_config(config: OursConfig, row: str) -> OursConfig:
+    """The pipeline config a row's labels come from (``lccp``: SymSeg off)."""
+    if row == "lccp":
+        return dataclasses.replace(config, overseg=dataclasses.replace(config.overseg, use_symseg=False))
+    return config
+
+
+def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dict]:
+    """(T_gtworld_reconworld 4×4, pose drift) of a reconstruction against the video's GT poses.
+
+    Drift: position (m) and rotation (deg) error of every posed camera after the alignment at f0, the
+    first frame with an estimated pose; zero by construction at f0 and everywhere with GT poses.
+    """
+    if not recon.T_world_cam:
+        raise DatasetError(f"{recon.dir}: the reconstruction has no camera poses")
+    f0 = min(recon.T_world_cam)
+    if recon.report.get("world_frame") == "dataset":
+        T = np.eye(4)
+    else:
+        T = labeled.T_world_cam(f0) @ invert_T(recon.T_world_cam[f0])
+    pos, rot = [], []
+    for f, T_est in sorted(recon.T_world_cam.items()):
+        T_gt, T_al = labeled.T_world_cam(f), T @ T_est
+        pos.append(np.linalg.norm(T_al[:3, 3] - T_gt[:3, 3]))
+        cos = (np.trace(T_gt[:3, :3].T @ T_al[:3, :3]) - 1) / 2
+        rot.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return T, {"align_frame": int(f0), "drift_pos_mean_m": float(np.mean(pos)), "drift_pos_max_m": float(np.max(pos)),
+               "drift_rot_mean_deg": float(np.mean(rot))}
+
+
+def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROWS,
+                   progress: bool = True) -> tuple[list[SceneSegmentations], dict[str, float]]:
+    """Run the pipeline on every video of ``dataset`` without ground truth; returns the labels of each
+    requested row and the seconds spent per step in this run (cached stages cost ~0)."""
+    videos = [dataset.video(v) for v in dataset.video_ids]
+    method = Ours(config, workdir)
+    seconds: dict[str, float] = {}
+    with ground_truth_forbidden(dataset.root):
+        t0 = time.perf_counter()
+        cache = method.run_overseg(videos)
+        seconds["recon_overseg_s"] = time.perf_counter() - t0
+        scenes = [SceneSegmentations(v.video_id, load_recon(cache.path("recon", v.video_id)), {}) for v in videos]
+        for s in scenes:
+            if "lccp+symseg" in rows:
+                s.labels["lccp+symseg"] = SegmentGraph.load(cache.path("overseg", s.video_id) / "segments.npz").labels
+        if "lccp" in rows:
+            t0 = time.perf_counter()
+            cfg = row_config(config, "lccp").overseg
+            for s in tqdm(scenes, desc="LCCP without SymSeg", unit="video", disable=not progress):
+                # VCCS colour distances use 0–255 like PCL (as in the overseg stage)
+                s.labels["lccp"] = oversegment(s.recon.points_w, s.recon.normals_w, s.recon.colors * 255.0,
+                                               s.recon.occupancy, cfg)
+            seconds["lccp_s"] = time.perf_counter() - t0
+        if "ours-matching" in rows:
+            t0 = time.perf_counter()
+            phi1 = method.train_phi1(videos, cache)
+            seconds["phi1_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            pseudo = method.pseudo_labels(videos, cache, phi1)
+            seconds["pseudo_s"] = time.perf_counter() - t0
+            for s in scenes:
+                s.labels["ours-matching"] = np.load(pseudo / "labels" / f"{s.video_id}.npy")
+    return scenes, seconds
+
+
+def _row_seconds(row: str, seconds: dict[str, float]) -> float:
+    steps = {"lccp": ("recon_overseg_s", "lccp_s"), "lccp+symseg": ("recon_overseg_s",),
+             "ours-matching": ("recon_overseg_s", "phi1_s", "pseudo_s")}[row]
+    return sum(seconds.get(k, 0.0) for k in steps)
+
+
+def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, models: dict[str, dict] | None = None,
+               max_dist_m: float = GT_MAX_DIST_M, progress: bool = True) -> list[dict]:
+    """Segment every video, score each row against the GT points and write its result record.
+
+    ``models`` ({video_id: {obj_id: mesh in metres, model frame}}) overrides the dataset's model files
+    (analytic test scenes have none). Returns the records, in the order of ``rows``.
+    """
+    bad = [r for r in rows if r not in ROWS]
+    if bad or not rows:
+        raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
+    out = Path(out)
+    workdir = out / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD)
+    workdir.mkdir(parents=True, exist_ok=True)
+    scenes, seconds = segment_scenes(dataset, config, workdir, rows, progress)
+
+    aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in scenes}
+    n_frames = sum(len(s.recon.frame_ids) for s in scenes)
+    records = []
+    for row in rows:
+        ev = PointsEvaluator(dataset, max_dist_m)
+        t0 = time.perf_counter()
+        for s in tqdm(scenes, desc=f"score {row}", unit="video", disable=not progress):
+            T, drift = aligned[s.video_id]
+            rec = ev.process(s.video_id, s.recon.points_w, s.labels[row] + 1, T,  # labels: −1 none → 0 unlabeled
+                             None if models is None else models[s.video_id])
+            rec.update(drift, n_points=len(s.recon.points_w),
+                       scored_fraction=rec["n_points_scored"] / max(len(s.recon.points_w), 1))
+        score_s = time.perf_counter() - t0
+        fit_s = _row_seconds(row, seconds)
+        record = {
+            **provenance(Ours.name, row, row_config(config, row), dataset, "3d"),
+            "fold": FOLD,
+            "n_folds": 1,
+            "train_videos": list(dataset.video_ids),
+            "test_videos": list(dataset.video_ids),
+            "options": {"max_dist_m": max_dist_m, "world_frame": scenes[0].recon.report.get("world_frame")},
+            **ev.evaluate(),
+            "pose_drift": {k: float(np.mean([aligned[s.video_id][1][k] for s in scenes])) for k in DRIFT_KEYS},
+            "scored_fraction_min": float(min(r["scored_fraction"] for r in ev.records)),  # low: misaligned video
+            "timings": {"fit_s": round(fit_s, 4), "ms_per_frame": round(1000 * fit_s / max(n_frames, 1), 4),
+                        "score_s": round(score_s, 4), "steps_s": {k: round(v, 4) for k, v in seconds.items()}},
+        }
+        write_result(out, record, ev.records)
+        records.append(record)
+    return records
+
+
+def format_table(records: list[dict]) -> str:
+    """One line per row: metrics over videos, mean camera drift, the least share of a video's points that lie
+    on a GT object (low = misaligned or drifted video), pipeline seconds."""
+    head = ["row", "videos", *TABLE_KEYS, "drift mm", "min scored %", "fit s"]
+    rows = [[r["name"], str(r["metrics"]["n_frames"]), *(fmt(r["metrics"][k]) for k in TABLE_KEYS),
+             f"{1000 * r['pose_drift']['drift_pos_mean_m']:.1f}", f"{100 * r['scored_fraction_min']:.0f}",
+             f"{r['timings']['fit_s']:.1f}"] for r in records]
+    widths = [max(len(x) for x in col) for col in zip(head, *rows)]
+    line = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
+    return "\n".join([f"Table II (3-D points) on {records[0]['dataset']['name']}", line(head), *map(line, rows)])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="evaluate3d", description="Table II: score the pipeline's 3-D segmentations of "
+                                "the reconstructed scenes against the ground-truth object points.")
+    p.add_argument("--data", type=Path, required=True, help="dataset folder")
+    p.add_argument("--config", type=Path, help="YAML file with the `ours` config (e.g. configs/ours-tiny.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value (repeatable)")
+    p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
+    p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        dataset = Dataset(args.data)
+        config = load_config(OursConfig, args.config, args.overrides)
+        rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
+        records = run_table2(dataset, config, args.out, rows, progress=not args.quiet)
+    except GroundTruthAccessError as e:
+        print(f"evaluate3d: error: the pipeline tried to read ground truth: {e}", file=sys.stderr)
+        return 2
+    except (ConfigError, DatasetError, FileFormatError, FileNotFoundError) as e:
+        print(f"evaluate3d: error: {e}", file=sys.stderr)
+        return 2
+    print(format_table(records))
+    print("results: " + ", ".join(str(args.out / SCORES_JSON.format(dataset=dataset.name, name=r["name"], fold=FOLD))
+                                  for r in records))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
