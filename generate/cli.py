@@ -1,0 +1,224 @@
+"""``generate_scenes``: generate a dataset of orbiting RGB-D videos of physics-dropped objects.
+
+Scenes are written atomically (temporary folder, then rename), so an interrupted run resumes:
+completed scenes are skipped. The output folder must be empty, absent, or this same dataset
+(same resolved config); ``--overwrite`` replaces an existing selfseg dataset. Bad input exits
+with code 2 and a message naming the problem, before anything is written.
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import multiprocessing
+import os
+import re
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from selfseg.config import ConfigError, from_dict, to_dict
+from selfseg.dataset import DATASET_INFO, MODELS_DIR, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info
+from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
+from selfseg.generate.objects import write_models
+from selfseg.generate.presets import GENERATOR_VERSION, PRESETS, GenerateConfig, preset_config
+from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
+
+PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
+EXIT_BAD_INPUT = 2
+
+
+class GenerateError(ValueError):
+    """Bad command-line input or output folder; the message says what and where."""
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"resolution must look like 320x240, got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="generate_scenes", description=__doc__.split("\n")[0])
+    p.add_argument("--preset", choices=list(PRESETS), default="tiny", help="base configuration (default: tiny)")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder to create or resume")
+    p.add_argument("--scenes", type=int, help="number of scenes (videos)")
+    p.add_argument("--frames", type=int, help="frames per full-rate video")
+    p.add_argument("--frame-step", type=int, help="render only every n-th frame (frame ids keep the full-rate index)")
+    p.add_argument("--resolution", type=_resolution, help="image size WxH, e.g. 320x240")
+    p.add_argument("--objects-per-scene", type=int, help="objects dropped per scene")
+    p.add_argument("--objects", type=Path, help="folder of user meshes (OBJ/PLY/GLB, metres) instead of the builtin library")
+    p.add_argument("--renderer", choices=["cycles", "workbench"], help="image renderer (default: cycles)")
+    p.add_argument("--seed", type=int, help="dataset seed (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default 1)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing selfseg dataset in --out")
+    p.add_argument("--cache-dir", type=Path, default=Path(os.environ.get("SELFSEG_CACHE", Path.home() / ".cache" / "selfseg")),
+                   help="cache for collision decompositions (default ~/.cache/selfseg or $SELFSEG_CACHE)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> GenerateConfig:
+    """The resolved config: the preset, then the command-line overrides."""
+    width, height = args.resolution if args.resolution else (None, None)
+    return preset_config(args.preset, scenes=args.scenes, frames=args.frames, frame_step=args.frame_step,
+                         width=width, height=height, objects_per_scene=args.objects_per_scene,
+                         objects_dir=str(args.objects.resolve()) if args.objects else None, seed=args.seed,
+                         render={"renderer": args.renderer} if args.renderer else None)
+
+
+def _stored_config(out: Path) -> dict | None:
+    """The config (with the generator version) recorded in an existing dataset folder, finished or
+    in progress; None if there is none."""
+    for name in (DATASET_INFO, PROGRESS_FILE):
+        if (out / name).is_file():
+            try:
+                rec = read_json(out / name)
+                return {**rec["config"], "generator_version": rec["generator_version"]}
+            except (FileFormatError, KeyError, TypeError):
+                raise GenerateError(f"{out / name}: unreadable dataset record; use --overwrite to replace it") from None
+    return None
+
+
+def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
+    """Entries of ``out`` that this dataset would not have written."""
+    scene_names = {video_id_str(i) for i in range(cfg.scenes)}
+    foreign = [p.name for p in out.iterdir() if p.name not in (DATASET_INFO, PROGRESS_FILE, MODELS_DIR, VIDEOS_DIR)]
+    videos = out / VIDEOS_DIR
+    if videos.is_dir():
+        foreign += [f"{VIDEOS_DIR}/{p.name}" for p in videos.iterdir()
+                    if p.name not in scene_names and not re.fullmatch(r"\.\d{6}\..*\.partial", p.name)]
+    return sorted(foreign)
+
+
+def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
+    """Check ``out`` is absent, empty, or this same dataset; with ``overwrite`` replace a selfseg dataset.
+
+    Raises GenerateError before anything is written or deleted if the folder cannot be used.
+    """
+    if out.exists() and not out.is_dir():
+        raise GenerateError(f"{out}: exists and is not a folder")
+    if not out.exists() or not any(out.iterdir()):
+        return
+    stored = _stored_config(out)
+    if overwrite:
+        if stored is None:
+            raise GenerateError(f"{out}: not a selfseg dataset (no {DATASET_INFO}); refusing to delete it even with "
+                                "--overwrite. Choose another --out or empty the folder yourself")
+        shutil.rmtree(out)
+        return
+    if stored is None:
+        raise GenerateError(f"{out}: folder is not empty and is not a selfseg dataset; choose another --out")
+    ours = {**to_dict(cfg), "generator_version": GENERATOR_VERSION}
+    if hash_json(stored) != hash_json(ours):
+        diff = sorted(k for k in set(ours) | set(stored if isinstance(stored, dict) else {})
+                      if not isinstance(stored, dict) or stored.get(k) != ours.get(k))
+        raise GenerateError(f"{out}: holds a dataset generated with a different config (differs in: "
+                            f"{', '.join(diff) or 'format'}); use --overwrite to replace it or choose another --out")
+    foreign = _foreign_entries(out, cfg)
+    if foreign:
+        raise GenerateError(f"{out}: contains files this dataset did not write ({', '.join(foreign[:5])}); "
+                            "remove them or choose another --out")
+    for stale in (out / VIDEOS_DIR).glob(".*.partial"):  # left by an interrupted scene
+        shutil.rmtree(stale)
+
+
+_worker_library: list | None = None
+
+
+def _generate_in_worker(cfg_dict: dict, index: int, final_dir: str, cache_dir: str) -> dict:
+    """Process-pool entry: load the library once per worker process, then generate one scene."""
+    global _worker_library
+    cfg = from_dict(GenerateConfig, cfg_dict)
+    if _worker_library is None:
+        _worker_library = load_library(cfg)
+    return generate_scene(cfg, index, _worker_library, Path(final_dir), Path(cache_dir), progress=False)
+
+
+def _summary(totals: dict, wall: float, n_frames: int, n_done: int, n_skipped: int, out: Path) -> str:
+    lines = [f"generate_scenes: {out}: {n_done} scenes generated, {n_skipped} already complete, "
+             f"{n_frames} frames rendered in {wall:.1f} s"]
+    lines.append(f"  {'stage':<14}{'seconds':>10}{'s/frame':>10}")
+    for stage, sec in totals.items():
+        per = f"{sec / n_frames:10.3f}" if n_frames and stage not in ("validate", "models") else f"{'':>10}"
+        lines.append(f"  {stage:<14}{sec:10.2f}{per}")
+    return "\n".join(lines)
+
+
+def validate(args: argparse.Namespace) -> tuple[GenerateConfig, list]:
+    """Resolve the config, load the object library and check the output folder (raises on bad input)."""
+    if args.workers < 1:
+        raise GenerateError(f"--workers must be at least 1, got {args.workers}")
+    cfg = config_from_args(args)
+    step = orbit_step_deg(cfg.orbit, cfg.frames) * cfg.frame_step
+    if step > 2.0:
+        print(f"generate_scenes: warning: the camera turns {step:.1f}° between rendered frames; "
+              "frame-to-frame tracking needs about 2° at most (lower --frame-step)", file=sys.stderr)
+    library = load_library(cfg)
+    prepare_output(args.out, cfg, args.overwrite)
+    return cfg, library
+
+
+def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: float) -> int:
+    """Generate the missing scenes, then the models and dataset_info.json; print the timing summary."""
+    totals = {"validate": time.perf_counter() - t_start, **dict.fromkeys(STAGES, 0.0), "models": 0.0}
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_dict = to_dict(cfg)
+    write_json(out / PROGRESS_FILE, {"config": cfg_dict, "generator_version": GENERATOR_VERSION})
+    cache_dir = args.cache_dir / "physics"
+    todo = [i for i in range(cfg.scenes) if not (out / VIDEO_DIR.format(video_id=video_id_str(i))).is_dir()]
+    skipped = cfg.scenes - len(todo)
+    bar = tqdm(total=cfg.scenes, initial=skipped, desc="scenes", unit="scene", disable=args.quiet)
+    if args.workers == 1 or len(todo) <= 1:
+        for i in todo:
+            t = generate_scene(cfg, i, library, out / VIDEO_DIR.format(video_id=video_id_str(i)), cache_dir,
+                               progress=not args.quiet)
+            for k, v in t.items():
+                totals[k] += v
+            bar.update()
+    else:
+        ctx = multiprocessing.get_context("spawn")  # bpy is not fork-safe
+        with cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
+            futures = [pool.submit(_generate_in_worker, cfg_dict, i,
+                                   str(out / VIDEO_DIR.format(video_id=video_id_str(i))), str(cache_dir)) for i in todo]
+            for fut in cf.as_completed(futures):
+                for k, v in fut.result().items():
+                    totals[k] += v
+                bar.update()
+    bar.close()
+
+    t0 = time.perf_counter()
+    write_models(out, library)
+    write_dataset_info(out, {
+        "name": cfg.preset, "generator_version": GENERATOR_VERSION, "resolution": [cfg.width, cfg.height],
+        "config": cfg_dict, "seed": cfg.seed, "frame_ids": cfg.frame_ids,
+        "objects": [{"obj_id": i + 1, "name": o.name, "source": o.source, "nonconvex": bool(o.nonconvex)}
+                    for i, o in enumerate(library)]})
+    (out / PROGRESS_FILE).unlink()
+    totals["models"] = time.perf_counter() - t0
+    print(_summary(totals, time.perf_counter() - t_start, len(todo) * len(cfg.frame_ids), len(todo), skipped, out))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    t_start = time.perf_counter()
+    try:
+        cfg, library = validate(args)
+    except (GenerateError, ConfigError, DatasetError, FileFormatError, ValueError) as e:  # incl. ObjectLibraryError
+        print(f"generate_scenes: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        return run(args, cfg, library, t_start)
+    except KeyboardInterrupt:
+        print("generate_scenes: interrupted; completed scenes are kept, re-run the same command to resume",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

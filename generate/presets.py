@@ -1,0 +1,114 @@
+"""Generation config (a dataclass, loaded through :mod:`selfseg.config`) and the named presets.
+
+* ``tiny``: CI data, the whole generation takes well under 3 minutes on 2 cores. Few objects
+  drawn from a small pool so that every object reappears across scenes.
+* ``small``: a quick experiment at 320×240.
+* ``paper-synthetic``: as in the paper: 36 videos × 800 frames, 12 objects per scene drawn from
+  a fixed 17-object subset, 640×480. ``frame_step`` n renders only every n-th frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from selfseg.config import from_dict, to_dict
+from selfseg.generate.physics import PhysicsConfig
+from selfseg.generate.render import RenderConfig
+
+GENERATOR_VERSION = "selfseg.generate 1"
+
+
+@dataclass
+class OrbitConfig:
+    """Camera orbit around the scene centre (metres, degrees). Per scene, the mean radius and
+    height are drawn from the ranges; both then fluctuate sinusoidally over the video."""
+
+    hfov_deg: float = 58.0  # horizontal field of view (RealSense-like)
+    radius_m: tuple[float, float] = (0.5, 0.65)  # mean horizontal distance to the scene centre
+    radius_amplitude_m: float = 0.05
+    height_m: tuple[float, float] = (0.35, 0.5)  # mean camera height above the table
+    height_amplitude_m: float = 0.06
+    arc_deg: float = 360.0  # azimuth swept by the full video (capped by max_step_deg per frame)
+    max_step_deg: float = 1.8  # largest azimuth step between full-rate frames (view change stays ≤ 2°)
+
+    def __post_init__(self) -> None:
+        if not 10.0 <= self.hfov_deg <= 120.0:
+            raise ValueError(f"orbit.hfov_deg must be in [10, 120], got {self.hfov_deg}")
+        if not (0 < self.radius_m[0] <= self.radius_m[1]) or not (0 < self.height_m[0] <= self.height_m[1]):
+            raise ValueError(f"orbit.radius_m and orbit.height_m must be increasing positive ranges, "
+                             f"got {self.radius_m} and {self.height_m}")
+        if self.max_step_deg <= 0 or self.arc_deg <= 0:
+            raise ValueError("orbit.arc_deg and orbit.max_step_deg must be positive")
+
+
+@dataclass
+class GenerateConfig:
+    """Everything that determines a generated dataset (recorded in dataset_info.json)."""
+
+    preset: str = "tiny"
+    scenes: int = 5
+    frames: int = 36  # frames of the full-rate video
+    frame_step: int = 1  # render every n-th frame of the full-rate video (frame ids keep the full-rate index)
+    width: int = 160
+    height: int = 120
+    objects_per_scene: int = 4
+    objects_dir: str | None = None  # folder of user meshes; None = the builtin library
+    object_pool: list[str] | None = None  # names of library objects to use; None = all of them
+    min_kept_fraction: float = 0.75  # re-drop a scene if fewer than this share of its objects stay on the table
+    seed: int = 0
+    render: RenderConfig = field(default_factory=RenderConfig)
+    orbit: OrbitConfig = field(default_factory=OrbitConfig)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("scenes", "frames", "frame_step", "width", "height", "objects_per_scene"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.width > 4096 or self.height > 4096:
+            raise ValueError(f"resolution {self.width}x{self.height} is larger than 4096x4096")
+        if not 0.0 < self.min_kept_fraction <= 1.0:
+            raise ValueError(f"min_kept_fraction must be in (0, 1], got {self.min_kept_fraction}")
+
+    @property
+    def frame_ids(self) -> list[int]:
+        """Ids of the rendered frames (indices into the full-rate video)."""
+        return list(range(0, self.frames, self.frame_step))
+
+
+TINY_POOL = ["box_medium", "can_soda", "ball", "mug", "bowl", "bottle", "banana", "dumbbell"]
+
+
+def _paper_pool() -> list[str]:
+    from selfseg.generate.objects import PAPER_SUBSET
+
+    return list(PAPER_SUBSET)
+
+
+PRESETS: dict[str, dict] = {
+    # 5 scenes × 36 frames at 160×120, 4 of 8 objects per scene (each object appears ~2.5 times)
+    "tiny": {"scenes": 5, "frames": 36, "width": 160, "height": 120, "objects_per_scene": 4,
+             "object_pool": TINY_POOL},
+    "small": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8},
+    "paper-synthetic": {"scenes": 36, "frames": 800, "width": 640, "height": 480, "objects_per_scene": 12,
+                        "object_pool": None},  # filled with PAPER_SUBSET by preset_config
+}
+
+
+def preset_config(name: str, **overrides) -> GenerateConfig:
+    """The named preset with field overrides (None values are ignored), validated."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    data = to_dict(GenerateConfig())
+    data.update(PRESETS[name], preset=name)
+    if name == "paper-synthetic":
+        data["object_pool"] = _paper_pool()
+    if overrides.get("objects_dir") is not None:
+        data["object_pool"] = None  # user objects: use all of them
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if key in ("render", "orbit", "physics"):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return from_dict(GenerateConfig, data)
+
