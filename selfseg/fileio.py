@@ -19,6 +19,13 @@ class FileFormatError(ValueError):
     """A file exists but cannot be parsed; the message names the file and the problem."""
 
 
+def _umask_mode(mode: int) -> int:
+    """``mode`` filtered by the process umask (mkstemp/mkdtemp would otherwise leave 0600/0700)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path = Path(path)
@@ -27,6 +34,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.chmod(tmp, _umask_mode(0o666))
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -81,6 +89,7 @@ def atomic_dir(final: str | os.PathLike) -> Iterator[Path]:
         raise FileExistsError(f"{final}: already exists")
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.", suffix=".partial"))
+    os.chmod(tmp, _umask_mode(0o777))
     try:
         yield tmp
         os.replace(tmp, final)
