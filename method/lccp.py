@@ -13,7 +13,8 @@ supervoxels s and t (centroids x, normals n, d = x_s − x_t) is valid when
 
 Segments are the connected components of valid edges; segments with fewer than
 ``min_segment_size`` supervoxels are merged into their largest neighbouring segment.
-Defaults are PCL's example program's, except the sanity criterion (on; see ``LCCPConfig``).
+Defaults are PCL's example program's, except the voxel and seed sizes and the sanity criterion
+(on); see ``LCCPConfig``.
 """
 from __future__ import annotations
 
@@ -30,8 +31,12 @@ from selfseg.method.supervoxels import Supervoxels, supervoxel_clustering
 class LCCPConfig:
     """VCCS + LCCP parameters (PCL names; lengths in metres, angles in degrees)."""
 
-    voxel_resolution_m: float = 0.0075
-    seed_resolution_m: float = 0.03
+    # [selfseg] 5 mm / 2.5 cm (PCL's example: 7.5 mm / 3 cm): the VCCS voxel equals the 5 mm TSDF voxel
+    # (ReconConfig.voxel_size_m) whose edge zero-crossings make up the fused cloud; a 7.5 mm grid aliases
+    # with that lattice (1 or 2 layers per voxel) and joins touching objects (tiny preset: 1.4 of 4
+    # objects per video merged, LCCP point precision .73; with these defaults 0 merged, precision .96)
+    voxel_resolution_m: float = 0.005
+    seed_resolution_m: float = 0.025
     color_importance: float = 0.0
     spatial_importance: float = 1.0
     normal_importance: float = 4.0

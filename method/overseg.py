@@ -35,11 +35,12 @@ def fuse_symmetries(lccp_labels: np.ndarray, points: np.ndarray, normals: np.nda
     ("own", :attr:`Symmetry.own_segments`) decide:
 
     * none: S becomes one segment (splitting the LCCP segments it overlaps, merging those inside);
-    * some, and the rest of S is a sizeable surface partly facing away from the axis (a bowl around
-      a bottle, even when LCCP cut the bowl into wedges): the own segments stay, the rest is one segment;
-    * two or more, rest small or facing the axis only (a cup's inside): own segments stay and the
-      rest joins them by contact (:func:`_split_among_own`);
-    * one, rest small or facing the axis only: S becomes one segment.
+    * some, and the rest of S is a sizeable surface around them (median distance to the axis larger
+      than theirs) partly facing away from the axis (a bowl around a bottle, even when LCCP cut the
+      bowl into wedges): the own segments stay, the rest is one segment;
+    * two or more, otherwise (rest small, inside them or facing the axis only: a cup's inside): own
+      segments stay and the rest joins them by contact (:func:`_split_among_own`);
+    * one, otherwise (e.g. a bowl's outer ring with its inside): S becomes one segment.
     """
     lccp = np.asarray(lccp_labels)
     out = lccp.astype(np.int64).copy()
@@ -57,8 +58,11 @@ def fuse_symmetries(lccp_labels: np.ndarray, points: np.ndarray, normals: np.nda
         own = sorted({s for other in symmetries if axis_close(other, sym.axis_point, sym.axis_dir, cfg)
                       for s in other.own_segments if s in present})
         rest = ~np.isin(piece, own)
-        rest_is_object = (bool(own) and rest.sum() >= cfg.min_seed_points and outward_fraction(
-            points[sup[rest]], normals[sup[rest]], sym.axis_point, sym.axis_dir, cfg.min_radius_m) >= 0.25)
+        radius = _axis_distance(points[sup], sym.axis_point, sym.axis_dir)
+        rest_is_object = (bool(own) and rest.sum() >= cfg.min_seed_points
+                          and np.median(radius[rest]) > np.median(radius[~rest]) and outward_fraction(
+                              points[sup[rest]], normals[sup[rest]], sym.axis_point, sym.axis_dir,
+                              cfg.min_radius_m) >= 0.25)
         if rest_is_object:
             used_own |= set(own)
             out[sup[~rest]] = piece[~rest]
@@ -72,6 +76,12 @@ def fuse_symmetries(lccp_labels: np.ndarray, points: np.ndarray, normals: np.nda
             next_label += 1
         claimed[sup] = True
     return out
+
+
+def _axis_distance(points: np.ndarray, c: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Distance (m) of each point (N×3, m) from the axis through ``c`` along the unit vector ``a``."""
+    d = points - c
+    return np.linalg.norm(d - np.outer(d @ a, a), axis=1)
 
 
 def _split_among_own(piece: np.ndarray, pts: np.ndarray, own: list[int], radius: float) -> np.ndarray:
