@@ -182,7 +182,8 @@ class Ours(EmbeddingMethodBase):
             graph = SegmentGraph.load(seg_dir / "segments.npz")
             frames = v.frame_ids[::cfg.feature_stride]
             segmaps = {f: read_label_map(seg_dir / "segmaps" / f"{f:06d}.png") for f in frames}
-            feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device)
+            feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
+                                            image_size=cfg.phi1_train.image_size)  # φ1 at its training scale
             recons.append(load_recon(cache.path("recon", v.video_id)))
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write("all", "scenes", key) as tmp:

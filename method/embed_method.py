@@ -1,0 +1,88 @@
+"""Shared adapter for methods that segment with a trained embedding network plus mean-shift.
+
+``fit`` builds a label source (the subclass decides from what), trains the network into a folder
+of ``workdir`` keyed by the settings and the training frames, and ``segment`` runs the network on
+the frame and clusters the foreground pixels (:func:`selfseg.method.meanshift.cluster_frame`).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from selfseg.baselines.base import Method
+from selfseg.config import to_dict
+from selfseg.dataset import Video
+from selfseg.fileio import hash_json
+from selfseg.method.meanshift import MeanShiftConfig, cluster_frame
+from selfseg.method.network import EmbeddingNet, NetConfig
+from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
+
+
+@dataclass
+class EmbeddingMethodConfig:
+    """Network, training schedule and clustering of an embedding method."""
+
+    # The narrower "fast" DeepLabV3+ reaches the paper's ~6 fps on 2 CPU cores (bench/bench_inference.py).
+    net: NetConfig = field(default_factory=lambda: NetConfig.preset("fast"))
+    train: TrainConfig = field(default_factory=TrainConfig)
+    cluster: MeanShiftConfig = field(default_factory=MeanShiftConfig)
+    frame_stride: int = 5  # training uses every n-th frame of each training video
+    device: str = "auto"  # inference device ("auto" → cuda if available, else cpu)
+
+    def __post_init__(self):
+        if self.frame_stride < 1:
+            raise ValueError(f"frame_stride must be ≥ 1, got {self.frame_stride}")
+
+
+def video_key(video: Video) -> list:
+    """Identity of a video's frames for cache keys: dataset folder, video id, frame ids."""
+    return [os.path.abspath(video.root), video.video_id, video.frame_ids]
+
+
+class EmbeddingMethodBase(Method):
+    """Trained embedding network + vMF mean-shift. Subclasses implement :meth:`label_source`."""
+
+    config_cls = EmbeddingMethodConfig
+    needs_fit = True
+
+    def __init__(self, config=None, workdir: str | Path | None = None):
+        super().__init__(config, workdir)
+        self.weights_path: Path | None = None
+        self._net: EmbeddingNet | None = None
+        self._device = resolve_device(self.config.device)
+
+    def label_source(self, train_videos: list[Video]) -> tuple[LabelSource, Any]:
+        """(training pairs, a JSON-able identity of what they were built from, for the cache key)."""
+        raise NotImplementedError
+
+    def training_frames(self, video: Video) -> list[int]:
+        """The frames of ``video`` used for training (every ``frame_stride``-th)."""
+        return video.frame_ids[::self.config.frame_stride]
+
+    def fit(self, train_videos: list[Video]) -> None:
+        if self.workdir is None:
+            raise ValueError(f"method {self.name!r} needs a workdir to store its trained network")
+        source, identity = self.label_source(train_videos)
+        key = {"method": self.name, "net": to_dict(self.config.net), "train": to_dict(self.config.train),
+               "frame_stride": self.config.frame_stride, "data": identity}
+        self.load(train_embedding(source, self.config.train, self.config.net, self.workdir / f"net-{hash_json(key)}"))
+
+    def load(self, weights_path: str | Path) -> None:
+        """Use the network saved at ``weights_path`` (written by :func:`train_embedding`)."""
+        self._net = load_embedding_net(weights_path, self._device)
+        self.weights_path = Path(weights_path)
+
+    def embed(self, rgb: np.ndarray) -> np.ndarray:
+        """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale)."""
+        from selfseg.method.features import embed_frames
+
+        if self._net is None:
+            raise RuntimeError(f"method {self.name!r} has no trained network: call fit() or load() first")
+        return embed_frames(self._net, [rgb], self._device, self.config.train.image_size)[0].float().cpu().numpy()
+
+    def segment(self, video: Video, frame_id: int, fg_mask: np.ndarray) -> np.ndarray:
+        return cluster_frame(self.embed(video.rgb(frame_id)), fg_mask, self.config.cluster)

@@ -1,0 +1,63 @@
+"""Segment features: the mean φ embedding of each 3D segment over all its projected pixels in a video.
+
+These are the node features of the scene graphs used by graph matching.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from selfseg.dataset import Video
+from selfseg.method.network import EmbeddingNet
+
+
+@torch.inference_mode()
+def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0
+                 ) -> torch.Tensor:
+    """uint8 H×W×3 frames (same size) → B×D×H×W unit embeddings on ``device``.
+
+    ``image_size`` > 0: the frames are resized so their longer side is ``image_size`` (the scale the
+    network was trained at, ``TrainConfig.image_size``) and the embeddings resized back to H×W.
+    """
+    x = torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    h, w = x.shape[2:]
+    if image_size <= 0 or max(h, w) == image_size:
+        return net(x)
+    s = image_size / max(h, w)
+    small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
+                          align_corners=False, antialias=s < 1)
+    return F.normalize(F.interpolate(net(small), size=(h, w), mode="bilinear", align_corners=False), dim=1)
+
+
+def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segmaps: dict[int, np.ndarray],
+                     n_segments: int, device: str | torch.device = "cpu", batch_size: int = 4,
+                     image_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Mean embedding of every segment over all its pixels in ``frame_ids``, L2-normalised.
+
+    segmaps: frame id → int H×W map, −1 = no segment, 0..n_segments−1 = segment id (the 3D segment
+    projected into the frame). Returns (features float32 S×D, seen bool S); segments that appear in
+    no frame get a zero row and ``seen = False``. ``image_size``: as in :func:`embed_frames`.
+    """
+    net.eval()
+    dim = net.cfg.embed_dim
+    sums = torch.zeros(n_segments, dim, dtype=torch.float64, device=device)
+    counts = torch.zeros(n_segments, dtype=torch.int64, device=device)
+    for start in range(0, len(frame_ids), batch_size):
+        fids = frame_ids[start:start + batch_size]
+        maps = []
+        for f in fids:
+            m = np.asarray(segmaps[f])
+            if m.shape != (video.height, video.width):
+                raise ValueError(f"segment map of frame {f} is {m.shape}, expected {(video.height, video.width)}")
+            if m.max(initial=-1) >= n_segments or m.min(initial=0) < -1:
+                raise ValueError(f"segment map of frame {f} has ids outside [-1, {n_segments - 1}]")
+            maps.append(m)
+        emb = embed_frames(net, [video.rgb(f) for f in fids], device, image_size)  # B×D×H×W
+        lab = torch.from_numpy(np.stack(maps).astype(np.int64)).to(device)
+        keep = lab >= 0
+        sums.index_add_(0, lab[keep], emb.permute(0, 2, 3, 1)[keep].double())
+        counts += torch.bincount(lab[keep], minlength=n_segments)
+    seen = counts > 0
+    feats = F.normalize(sums, dim=1).float()
+    return feats.cpu().numpy(), seen.cpu().numpy()

@@ -1,0 +1,310 @@
+"""One trainer for every pixel-embedding network: φ1, φ2, the supervised upper bound and V1.
+
+The trainer never opens ground truth itself: it reads (RGB, label map) pairs from the *label
+source* it is handed. Every step's batch and augmentation come from ``np.random.default_rng
+([seed, step])`` and the weights from ``torch.manual_seed(seed)``, so a run is deterministic and a
+run resumed from a checkpoint reproduces an unbroken one (bitwise on the CPU).
+
+Files in ``out_dir``: ``checkpoints/step_NNNNNN.pt`` (only the latest is kept), ``weights.pt``
+(final; a finished run is not retrained), ``training_log.json`` and ``loss_curve.png``.
+``out_dir`` must be specific to the label source: the trainer cannot tell two sources apart.
+"""
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from selfseg.config import from_dict, to_dict
+from selfseg.dataset import Video
+from selfseg.fileio import atomic_write_bytes, hash_json, write_json
+from selfseg.method.contrastive import prototype_contrastive_loss
+from selfseg.method.network import EmbeddingNet, NetConfig
+
+WEIGHTS = "weights.pt"
+CHECKPOINT_DIR = "checkpoints"
+# Settings that change how a run executes but not its result; excluded from the resume key.
+_RUNTIME_FIELDS = ("device", "threads", "checkpoint_every")
+
+
+@dataclass
+class TrainConfig:
+    """Training schedule and augmentation. Crop sizes in pixels (H, W), after resizing and scaling."""
+
+    steps: int = 1000
+    batch_size: int = 8
+    lr: float = 1e-3  # Adam(W), polynomial decay (power 0.9) to 0
+    weight_decay: float = 1e-4
+    image_size: int = 320  # frames are first resized so their longer side is this (0 = keep)
+    crop: tuple[int, ...] = (192, 256)  # random crop H, W (padded with ignore if the image is smaller)
+    scale_range: tuple[float, ...] = (0.75, 1.25)  # random rescale factor before cropping
+    flip: bool = True  # random horizontal flip
+    brightness: float = 0.3  # colour jitter: factors drawn in [1 − x, 1 + x]
+    contrast: float = 0.3
+    saturation: float = 0.3
+    hue: float = 0.05  # hue shift, fraction of the full hue circle, drawn in [−x, x]
+    min_segment_px: int = 16  # segments with fewer pixels in a crop are ignored
+    tau: float = 0.07
+    loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
+    seed: int = 0
+    checkpoint_every: int = 200
+    device: str = "auto"  # "auto" → cuda if available, else cpu
+    threads: int = 0  # torch CPU threads; 0 = torch's default
+
+    def __post_init__(self):
+        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
+            raise ValueError("steps, batch_size and checkpoint_every must be ≥ 1")
+        if len(self.crop) != 2 or min(self.crop) < 16:
+            raise ValueError(f"crop must be (H, W) with both ≥ 16, got {self.crop}")
+        if len(self.scale_range) != 2 or not 0 < self.scale_range[0] <= self.scale_range[1]:
+            raise ValueError(f"scale_range must be (lo, hi) with 0 < lo ≤ hi, got {self.scale_range}")
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "TrainConfig":
+        """Named schedule ("tiny": a minute-scale run for the tiny preset and tests; "default": CPU)."""
+        if name not in TRAIN_PRESETS:
+            raise ValueError(f"unknown training preset {name!r}; choose one of {sorted(TRAIN_PRESETS)}")
+        return cls(**{**TRAIN_PRESETS[name], **overrides})
+
+
+# "default": 8000 crops of 192×256, about 15 min for the "fast" network on 2 free CPU cores
+# (bench/bench_inference.py measured 10 images/s), several hours for the full-width one.
+TRAIN_PRESETS: dict[str, dict] = {
+    "tiny": dict(steps=150, batch_size=4, image_size=160, crop=(96, 128), checkpoint_every=50),
+    "default": {},
+}
+
+
+class LabelSource(Protocol):
+    """Training pairs: ``source[i]`` → (rgb uint8 H×W×3, labels int32 H×W, −1 = ignore, ≥ 0 = segment id)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+LabelLoader = Callable[[Video, int], np.ndarray]
+
+
+class FrameLabelSource:
+    """Frames of videos with a label map each, read lazily.
+
+    items: (video, frame_id, loader) triples; ``loader(video, frame_id)`` returns the frame's int
+    label map (−1 = ignore, ≥ 0 = segment id), e.g. projected 3D segments or pseudo-labels.
+    """
+
+    def __init__(self, items: Sequence[tuple[Video, int, LabelLoader]]):
+        self.items = list(items)
+        if not self.items:
+            raise ValueError("a label source needs at least one frame")
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        video, fid, loader = self.items[i]
+        rgb = video.rgb(fid)
+        labels = np.asarray(loader(video, fid))
+        if labels.shape != rgb.shape[:2] or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(f"video {video.video_id} frame {fid}: label map must be an integer "
+                             f"{rgb.shape[0]}×{rgb.shape[1]} array, got {labels.dtype} {labels.shape}")
+        return rgb, labels.astype(np.int32)
+
+
+def resolve_device(device: str) -> torch.device:
+    """"auto" → cuda if available, else cpu; anything else is passed to torch."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def _jitter(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.ndarray:
+    """Colour jitter of float32 RGB in [0, 1] (brightness, contrast, saturation, hue; fixed order)."""
+    gray_w = np.array([0.299, 0.587, 0.114], np.float32)
+    img = img * np.float32(rng.uniform(1 - cfg.brightness, 1 + cfg.brightness))
+    c = np.float32(rng.uniform(1 - cfg.contrast, 1 + cfg.contrast))
+    img = (img - (img @ gray_w).mean()) * c + (img @ gray_w).mean()
+    s = np.float32(rng.uniform(1 - cfg.saturation, 1 + cfg.saturation))
+    gray = (img @ gray_w)[..., None]
+    img = np.clip(gray + (img - gray) * s, 0, 1)
+    hue = rng.uniform(-cfg.hue, cfg.hue)
+    if hue != 0:
+        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV)  # float input: H in degrees [0, 360)
+        hsv[..., 0] = (hsv[..., 0] + np.float32(hue * 360.0)) % 360.0
+        img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    return np.clip(img, 0, 1)
+
+
+def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.random.Generator
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Resize, random scale, crop, flip and colour jitter.
+
+    rgb uint8 H×W×3, labels int H×W → (float32 3×h×w in [0, 1], int64 h×w with −1 = ignore), h×w = cfg.crop.
+    """
+    img = rgb.astype(np.float32) / 255.0
+    lab = labels.astype(np.int32)
+    h, w = lab.shape
+    base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
+    s = base * rng.uniform(*cfg.scale_range)
+    nh, nw = max(1, round(h * s)), max(1, round(w * s))
+    img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)  # antialiased
+    lab = cv2.resize(lab, (nw, nh), interpolation=cv2.INTER_NEAREST)
+    ch, cw = cfg.crop
+    ph, pw = max(0, ch - nh), max(0, cw - nw)
+    if ph or pw:
+        img = np.pad(img, ((0, ph), (0, pw), (0, 0)))
+        lab = np.pad(lab, ((0, ph), (0, pw)), constant_values=-1)
+    y0 = int(rng.integers(0, img.shape[0] - ch + 1))
+    x0 = int(rng.integers(0, img.shape[1] - cw + 1))
+    img, lab = img[y0:y0 + ch, x0:x0 + cw], lab[y0:y0 + ch, x0:x0 + cw]
+    if cfg.flip and rng.random() < 0.5:
+        img, lab = img[:, ::-1], lab[:, ::-1]
+    img = _jitter(np.ascontiguousarray(img), cfg, rng)
+    lab = lab.astype(np.int64)
+    ids, counts = np.unique(lab[lab >= 0], return_counts=True)
+    small = ids[counts < cfg.min_segment_px]
+    if len(small):
+        lab[np.isin(lab, small)] = -1
+    return np.ascontiguousarray(img.transpose(2, 0, 1)), lab
+
+
+def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The batch of ``step``: a pure function of (seed, step) → (B×3×h×w float, B×h×w long)."""
+    rng = np.random.default_rng([cfg.seed, step])
+    idx = rng.choice(len(source), cfg.batch_size, replace=len(source) < cfg.batch_size)
+    pairs = [augment(*source[int(i)], cfg, rng) for i in idx]
+    return (torch.from_numpy(np.stack([p[0] for p in pairs])), torch.from_numpy(np.stack([p[1] for p in pairs])))
+
+
+def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: int, device: torch.device
+              ) -> torch.Tensor:
+    """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step))."""
+    rgb, labels = make_batch(source, cfg, step)
+    pixel_rng = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+    return prototype_contrastive_loss(net(rgb.to(device)), labels.to(device), cfg.tau, cfg.loss_pixels, pixel_rng)
+
+
+def _train_key(cfg: TrainConfig, net_cfg: NetConfig) -> dict:
+    train = {k: v for k, v in to_dict(cfg).items() if k not in _RUNTIME_FIELDS}
+    return {"train": train, "net": to_dict(net_cfg)}
+
+
+def _save_torch(path: Path, obj: dict) -> None:
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _latest_checkpoint(ckpt_dir: Path) -> Path | None:
+    found = sorted(ckpt_dir.glob("step_*.pt")) if ckpt_dir.is_dir() else []
+    return found[-1] if found else None
+
+
+def _write_log(out_dir: Path, key: dict, losses: list[float], seconds: float, images: int, device: torch.device) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    write_json(out_dir / "training_log.json", {
+        "config": key, "steps": len(losses), "loss": losses, "final_loss_mean10": float(np.mean(losses[-10:])),
+        "seconds_this_session": round(seconds, 2), "images_per_s": round(images / max(seconds, 1e-9), 3),
+        "device": str(device)})
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(losses, lw=0.6, alpha=0.5, label="loss")
+    k = max(1, len(losses) // 50)
+    ax.plot(np.arange(k - 1, len(losses)), np.convolve(losses, np.ones(k) / k, mode="valid"), lw=1.5,
+            label=f"mean of {k}")
+    ax.set_xlabel("step")
+    ax.set_ylabel("contrastive loss")
+    ax.legend()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(out_dir / "loss_curve.png", buf.getvalue())
+
+
+def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, out_dir: str | Path,
+                    progress: bool = True) -> Path:
+    """Train an :class:`EmbeddingNet` with the prototype contrastive loss; returns the weights path.
+
+    Resumes from the latest checkpoint in ``out_dir`` if its settings match (else raises), and
+    returns at once if ``weights.pt`` was already written with the same settings.
+    """
+    out_dir = Path(out_dir)
+    key = _train_key(cfg, net_cfg)
+    weights = out_dir / WEIGHTS
+    if weights.is_file():
+        if torch.load(weights, map_location="cpu", weights_only=True)["key_hash"] == hash_json(key):
+            return weights
+        raise ValueError(f"{weights}: trained with other settings; use another out_dir or delete it")
+    if len(source) == 0:
+        raise ValueError("the label source is empty")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    device = resolve_device(cfg.device)
+    torch.backends.cudnn.benchmark = False
+    torch.manual_seed(cfg.seed)
+    net = EmbeddingNet(net_cfg).to(device)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start, losses = 0, []
+    ckpt_dir = out_dir / CHECKPOINT_DIR
+    latest = _latest_checkpoint(ckpt_dir)
+    if latest is not None:
+        state = torch.load(latest, map_location=device, weights_only=True)
+        if state["key_hash"] != hash_json(key):
+            raise ValueError(f"{latest}: checkpoint has other training settings; use another out_dir or delete it")
+        net.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start, losses = int(state["step"]), list(state["losses"])
+
+    net.train()
+    t0, images = time.perf_counter(), 0
+    bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, disable=not progress, desc="train φ",
+               dynamic_ncols=True)
+    for step in bar:
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr * (1 - step / cfg.steps) ** 0.9
+        loss = step_loss(net, source, cfg, step, device)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        if not np.isfinite(losses[-1]):
+            raise FloatingPointError(f"training loss became {losses[-1]} at step {step}; lower lr "
+                                     f"(now {cfg.lr}) or check the label source")
+        images += cfg.batch_size
+        bar.set_postfix(loss=f"{losses[-1]:.4f}")
+        done = step + 1
+        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+            ckpt_dir.mkdir(parents=True, exist_ok=True)
+            path = ckpt_dir / f"step_{done:06d}.pt"
+            _save_torch(path, {"step": done, "model": net.state_dict(), "optimizer": opt.state_dict(),
+                               "losses": losses, "key_hash": hash_json(key)})
+            for old in ckpt_dir.glob("step_*.pt"):
+                if old != path:
+                    old.unlink()
+            _write_log(out_dir, key, losses, time.perf_counter() - t0, images, device)
+    bar.close()
+    _save_torch(weights, {"net_cfg": to_dict(net_cfg), "state_dict": net.state_dict(), "key_hash": hash_json(key)})
+    return weights
+
+
+def load_embedding_net(path: str | Path, device: str | torch.device = "cpu") -> EmbeddingNet:
+    """Load ``weights.pt`` written by :func:`train_embedding` → network in eval mode on ``device``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no trained weights (run the method's fit first)")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    net = EmbeddingNet(from_dict(NetConfig, state["net_cfg"]))
+    net.load_state_dict(state["state_dict"])
+    return net.to(resolve_device(str(device))).eval()
+

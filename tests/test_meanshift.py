@@ -1,0 +1,108 @@
+"""vMF mean-shift with the proximity term, connected-component splitting and small-part absorption."""
+import numpy as np
+import pytest
+
+from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, split_components, vmf_meanshift
+
+
+def unit(x):
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def clusters(k, n_per, dim=16, noise=0.08, seed=0):
+    rng = np.random.default_rng(seed)
+    centers = unit(rng.normal(size=(k, dim)))
+    truth = np.repeat(np.arange(k), n_per)
+    return unit(centers[truth] + noise * rng.normal(size=(k * n_per, dim))), truth
+
+
+def assert_same_partition(labels, truth):
+    """One label per true cluster and one true cluster per label."""
+    pairs = set(zip(labels.tolist(), truth.tolist()))
+    assert len(pairs) == len(set(truth.tolist())) == len(set(labels.tolist()))
+
+
+@pytest.mark.parametrize("k", [2, 5, 9])
+def test_recovers_k_clusters_without_being_told(k):
+    emb, truth = clusters(k, 150, seed=k)
+    labels = vmf_meanshift(emb, None, MeanShiftConfig(spatial_sigma=0.0))
+    assert_same_partition(labels, truth)
+    assert labels.min() == 0 and np.bincount(labels).tolist() == sorted(np.bincount(labels).tolist(), reverse=True)
+
+
+def test_subsampled_mode_finding_assigns_every_point():
+    emb, truth = clusters(4, 3000, seed=1)
+    labels = vmf_meanshift(emb, None, MeanShiftConfig(spatial_sigma=0.0, max_pixels=500))
+    assert labels.shape == truth.shape
+    assert_same_partition(labels, truth)
+
+
+def test_spatial_term_needs_positions():
+    emb, _ = clusters(2, 10)
+    with pytest.raises(ValueError, match="xy"):
+        vmf_meanshift(emb, None, MeanShiftConfig(spatial_sigma=0.1))
+
+
+def bridged_blobs(h=60, w=120):
+    """Two 30×30 squares far apart, joined by a 1-pixel bridge: one connected foreground region."""
+    fg = np.zeros((h, w), bool)
+    fg[15:45, 5:35] = True
+    fg[15:45, 85:115] = True
+    fg[30, 35:85] = True
+    return fg
+
+
+def test_proximity_term_splits_identical_blobs_far_apart():
+    fg = bridged_blobs()
+    rng = np.random.default_rng(0)
+    emb = unit(np.array([1.0, 0.5, -0.2, 0.3])[:, None, None] + 0.02 * rng.normal(size=(4,) + fg.shape))
+    emb = unit(emb.transpose(1, 2, 0)).transpose(2, 0, 1)
+    plain = cluster_frame(emb, fg, MeanShiftConfig(spatial_sigma=0.0, min_component_px=10))
+    assert set(np.unique(plain[fg])) == {1}  # same features and connected: components cannot split it
+    near = cluster_frame(emb, fg, MeanShiftConfig(spatial_sigma=0.12, merge_xy=0.3, min_component_px=10))
+    left, right = near[15:45, 5:35], near[15:45, 85:115]
+    assert len(np.unique(left)) == 1 and len(np.unique(right)) == 1
+    assert left[0, 0] != right[0, 0] and left[0, 0] > 0 and right[0, 0] > 0
+    assert np.all((near > 0) == fg)
+
+
+def test_clusters_are_split_into_components_and_small_parts_absorbed_or_dropped():
+    h, w = 40, 60
+    fg = np.zeros((h, w), bool)
+    fg[5:20, 5:20] = True  # square A
+    fg[5:20, 40:55] = True  # square B, same features as A, not touching
+    fg[30:33, 30:33] = True  # isolated 9-pixel speck
+    emb = np.zeros((3, h, w), np.float32)
+    emb[0] = 1.0
+    emb[:, 10:13, 10:13] = np.array([0.0, 1.0, 0.0])[:, None, None]  # a 9-px patch inside A, other features
+    inst = cluster_frame(emb, fg, MeanShiftConfig(spatial_sigma=0.0, min_component_px=20))
+    a, b = inst[5:20, 5:20], inst[5:20, 40:55]
+    assert len(np.unique(a)) == 1 and len(np.unique(b)) == 1 and a[0, 0] != b[0, 0]  # patch absorbed into A
+    assert np.all(inst[30:33, 30:33] == 0)  # small and isolated: dropped
+    assert sorted(np.unique(inst).tolist()) == [0, 1, 2]
+    kept = cluster_frame(emb, fg, MeanShiftConfig(spatial_sigma=0.0, min_component_px=1))
+    assert len(np.unique(kept[10:13, 10:13])) == 1 and kept[11, 11] != kept[5, 5]
+    assert len(np.unique(kept[fg])) == 4  # A, patch, B, speck
+
+
+def test_split_and_absorb_helpers():
+    lab = np.array([[1, 1, 0, 1],
+                    [0, 0, 0, 1],
+                    [2, 2, 0, 0]])
+    comps = split_components(lab, connectivity=4)
+    assert len(np.unique(comps[comps > 0])) == 3 and comps[0, 0] != comps[0, 3]
+    grown = np.array([[1, 1, 1, 2],
+                      [1, 1, 1, 1],
+                      [3, 3, 0, 4]])
+    out = absorb_small(grown, min_px=2)  # 2 (1 px) joins 1; 3 (2 px) stays; 4 (1 px) touches only 1
+    assert out[0, 3] == out[0, 0] == out[2, 3] and out[2, 0] == out[2, 1] != out[0, 0]
+    assert sorted(np.unique(out).tolist()) == [0, 1, 2]
+
+
+def test_cluster_frame_edge_cases():
+    cfg = MeanShiftConfig()
+    assert np.all(cluster_frame(np.ones((4, 5, 6), np.float32) / 2, np.zeros((5, 6), bool), cfg) == 0)
+    with pytest.raises(ValueError, match="D×H×W"):
+        cluster_frame(np.ones((4, 5, 6)), np.ones((6, 5), bool), cfg)
+    with pytest.raises(ValueError, match="connectivity"):
+        MeanShiftConfig(connectivity=6)

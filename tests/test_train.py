@@ -1,0 +1,224 @@
+"""The embedding trainer (augmentation, checkpoints, resume), segment features, and the supervised method."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from analytic import make_dataset, two_box_scenes
+from selfseg.baselines.registry import get_method_class
+from selfseg.dataset import Dataset, DatasetError, ground_truth_forbidden
+from selfseg.method.embed_method import EmbeddingMethodConfig
+from selfseg.method.features import embed_frames, segment_features
+from selfseg.method.meanshift import MeanShiftConfig
+from selfseg.method.network import EmbeddingNet, NetConfig
+from selfseg.method.train import FrameLabelSource, TrainConfig, augment, load_embedding_net, train_embedding
+
+torch.set_num_threads(2)
+SMALL_NET = NetConfig(width=8, aspp_channels=16, low_level_channels=8, decoder_channels=16)
+
+
+class SyntheticSource:
+    """64×48 images of 2–3 flat-coloured rectangles; labels = rectangle index. Can simulate a crash."""
+
+    def __init__(self, n=6, crash_after=None):
+        rng = np.random.default_rng(0)
+        self.items = []
+        for _ in range(n):
+            rgb = np.full((48, 64, 3), 200, np.uint8)
+            lab = np.full((48, 64), -1, np.int32)
+            for k in range(int(rng.integers(2, 4))):
+                y, x = rng.integers(0, 30), rng.integers(0, 44)
+                rgb[y:y + 18, x:x + 20] = rng.integers(0, 255, 3)
+                lab[y:y + 18, x:x + 20] = k
+            self.items.append((rgb, lab))
+        self.calls, self.crash_after = 0, crash_after
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, i):
+        self.calls += 1
+        if self.crash_after is not None and self.calls > self.crash_after:
+            raise KeyboardInterrupt("simulated crash")
+        return self.items[i]
+
+
+def tiny_cfg(**kw):
+    base = dict(steps=6, batch_size=2, image_size=0, crop=(32, 48), checkpoint_every=3, lr=5e-3, seed=3, threads=2)
+    return TrainConfig(**{**base, **kw})
+
+
+def test_augment_keeps_labels_aligned_with_pixels():
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    lab = np.full((48, 64), -1, np.int32)
+    for k, (y, x) in enumerate([(0, 0), (0, 32), (24, 0), (24, 32)]):
+        rgb[y:y + 24, x:x + 32] = (60 * k + 20, 10, 250 - 60 * k)
+        lab[y:y + 24, x:x + 32] = k
+    lab[24:, 32:] = -1
+    cfg = TrainConfig(image_size=80, crop=(56, 72), scale_range=(0.6, 1.4), brightness=0, contrast=0, saturation=0,
+                      hue=0, min_segment_px=1)
+    for step in range(8):
+        img, out = augment(rgb, lab, cfg, np.random.default_rng(step))
+        assert img.shape == (3, 56, 72) and out.shape == (56, 72) and img.dtype == np.float32
+        red = img[0]
+        for k in np.unique(out[out >= 0]):
+            vals = red[(out == k)]
+            interior = np.abs(vals - (60 * k + 20) / 255) < 0.02
+            assert interior.mean() > 0.8  # label k sits on colour k (edges blur by interpolation)
+
+
+def test_augment_jitter_changes_colour_only_and_drops_small_segments():
+    rgb = np.full((48, 64, 3), 128, np.uint8)
+    lab = np.zeros((48, 64), np.int32)
+    lab[:2, :2] = 1  # 4 pixels: below min_segment_px
+    cfg = TrainConfig(image_size=0, crop=(48, 64), scale_range=(1, 1), flip=False, min_segment_px=16)
+    img, out = augment(rgb, lab, cfg, np.random.default_rng(0))
+    assert np.all(out[:2, :2] == -1) and np.all(out[2:] == 0)
+    assert abs(float(img.mean()) - 128 / 255) > 1e-3 and 0 <= img.min() and img.max() <= 1
+
+
+def test_resumed_training_equals_unbroken_run(tmp_path):
+    cfg = tiny_cfg()
+    w_full = train_embedding(SyntheticSource(), cfg, SMALL_NET, tmp_path / "full", progress=False)
+    crashing = SyntheticSource(crash_after=2 * 4)  # crashes in step 5, after the step-3 checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        train_embedding(crashing, cfg, SMALL_NET, tmp_path / "resumed", progress=False)
+    assert [p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()] == ["step_000003.pt"]
+    assert not (tmp_path / "resumed" / "weights.pt").exists()
+    resumed_source = SyntheticSource()
+    w_res = train_embedding(resumed_source, cfg, SMALL_NET, tmp_path / "resumed", progress=False)
+    assert resumed_source.calls == 3 * cfg.batch_size  # only steps 4–6 ran
+    a = torch.load(w_full, weights_only=True)["state_dict"]
+    b = torch.load(w_res, weights_only=True)["state_dict"]
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    log_a = json.loads((tmp_path / "full" / "training_log.json").read_text())
+    log_b = json.loads((tmp_path / "resumed" / "training_log.json").read_text())
+    assert log_a["loss"] == log_b["loss"] and len(log_a["loss"]) == 6
+    assert (tmp_path / "full" / "loss_curve.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_finished_run_is_reused_and_other_settings_refused(tmp_path):
+    cfg = tiny_cfg(steps=2, checkpoint_every=1)
+    w = train_embedding(SyntheticSource(), cfg, SMALL_NET, tmp_path, progress=False)
+    assert train_embedding(SyntheticSource(crash_after=0), cfg, SMALL_NET, tmp_path, progress=False) == w
+    assert train_embedding(SyntheticSource(crash_after=0), tiny_cfg(steps=2, checkpoint_every=2, device="cpu"),
+                           SMALL_NET, tmp_path, progress=False) == w  # runtime-only settings don't matter
+    with pytest.raises(ValueError, match="other settings"):
+        train_embedding(SyntheticSource(), tiny_cfg(steps=2, lr=1e-2), SMALL_NET, tmp_path, progress=False)
+    net = load_embedding_net(w)
+    x = torch.rand(1, 3, 24, 40)
+    with torch.no_grad():
+        y = net(x)
+    assert y.shape == (1, SMALL_NET.embed_dim, 24, 40)
+    assert torch.allclose(y.norm(dim=1), torch.ones(1, 24, 40), atol=1e-5)
+
+
+def test_network_shapes_and_config_errors():
+    net = EmbeddingNet(NetConfig(width=8, aspp_channels=8, low_level_channels=8, decoder_channels=8,
+                                 output_stride=8, encoder="resnet34")).eval()
+    with torch.no_grad():
+        assert net(torch.rand(2, 3, 37, 53)).shape == (2, 16, 37, 53)
+    with pytest.raises(ValueError, match="encoder"):
+        NetConfig(encoder="vgg")
+    with pytest.raises(ValueError, match="output_stride"):
+        NetConfig(output_stride=32)
+    with pytest.raises(ValueError, match="B×3×H×W"):
+        net(torch.rand(3, 20, 20))
+
+
+def test_segment_features_average_over_all_frames(analytic_dataset):
+    video = Dataset(analytic_dataset).labeled("000000")
+    torch.manual_seed(0)
+    net = EmbeddingNet(SMALL_NET).eval()
+    fids = video.frame_ids[:3]
+    segmaps = {f: video.inst(f).astype(np.int64) - 1 for f in fids}  # objects 1, 2 → segments 0, 1
+    feats, seen = segment_features(net, video, fids, segmaps, n_segments=3, batch_size=2)
+    assert feats.shape == (3, 16) and seen.tolist() == [True, True, False]
+    assert np.all(feats[2] == 0) and np.allclose(np.linalg.norm(feats[:2], axis=1), 1, atol=1e-5)
+    emb = embed_frames(net, [video.rgb(f) for f in fids], "cpu").numpy()  # B×D×H×W
+    for s in (0, 1):
+        pix = np.concatenate([emb[i][:, segmaps[f] == s].T for i, f in enumerate(fids)])
+        mean = pix.mean(0)
+        assert np.allclose(feats[s], mean / np.linalg.norm(mean), atol=1e-5)
+    small = embed_frames(net, [video.rgb(fids[0])], "cpu", image_size=80)  # run at half size, resized back
+    assert small.shape == (1, 16, video.height, video.width)
+    assert torch.allclose(small.norm(dim=1), torch.ones(1), atol=1e-5)
+    segmaps[fids[0]][0, 0] = 3
+    with pytest.raises(ValueError, match="outside"):
+        segment_features(net, video, fids, segmaps, n_segments=3)
+
+
+def mean_iou(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean over GT objects of the Hungarian-matched IoU (unmatched objects score 0)."""
+    g_ids, p_ids = np.unique(gt[gt > 0]), np.unique(pred[pred > 0])
+    iou = np.zeros((len(g_ids), len(p_ids)))
+    for i, g in enumerate(g_ids):
+        for j, p in enumerate(p_ids):
+            inter = np.sum((gt == g) & (pred == p))
+            iou[i, j] = inter / np.sum((gt == g) | (pred == p))
+    r, c = linear_sum_assignment(-iou)
+    return float(iou[r, c].sum() / len(g_ids))
+
+
+@pytest.mark.slow
+def test_supervised_method_fits_and_beats_one_segment(analytic_dataset, tmp_path):
+    ds = Dataset(analytic_dataset)
+    videos = [ds.labeled(v) for v in ds.video_ids]
+    cls = get_method_class("supervised")
+    cfg = EmbeddingMethodConfig(net=NetConfig(width=8, aspp_channels=16, low_level_channels=8, decoder_channels=16),
+                                train=TrainConfig.preset("tiny", steps=30, threads=2, image_size=96, crop=(48, 64)),
+                                frame_stride=2,
+                                cluster=MeanShiftConfig(min_component_px=20), device="cpu")
+    method = cls(cfg, workdir=tmp_path)
+    method.fit(videos)
+    assert method.weights_path.is_file() and (method.weights_path.parent / "loss_curve.png").is_file()
+    log = json.loads((method.weights_path.parent / "training_log.json").read_text())
+    assert np.mean(log["loss"][-10:]) < 0.8 * np.mean(log["loss"][:10])
+    # A training-video frame with three objects (a fit sanity check, not a generalisation claim).
+    video, fid = videos[2], videos[2].frame_ids[-1]
+    gt = video.inst(fid).astype(np.int64)
+    fg = gt > 0
+    assert len(np.unique(gt[fg])) >= 2
+    pred = method.segment(video, fid, fg)
+    assert pred.shape == gt.shape and np.all(pred[~fg] == 0)
+    ours, one = mean_iou(np.where(fg, pred, 0), gt), mean_iou(fg.astype(np.int64), gt)
+    assert ours > max(0.5, one + 0.2), (ours, one)
+
+
+def test_v1_disjoint_trains_elsewhere_and_never_reads_test_labels(analytic_dataset, tmp_path):
+    test_root = make_dataset(tmp_path / "test", two_box_scenes()[:1], n_frames=2, width=64, height=48, fx=60.0)
+    test_ds = Dataset(test_root)
+    cls = get_method_class("v1-disjoint")
+    cfg = cls.config_cls(net=SMALL_NET, train=tiny_cfg(steps=2, image_size=64), train_data=str(analytic_dataset),
+                         device="cpu")
+    method = cls(cfg, workdir=tmp_path / "work")
+    videos = [test_ds.video(v) for v in test_ds.video_ids]
+    with ground_truth_forbidden(test_root):
+        method.fit(videos)
+        fg = np.ones((48, 64), bool)
+        pred = method.segment(videos[0], videos[0].frame_ids[0], fg)
+    assert pred.shape == (48, 64) and pred.max() >= 1
+    log = json.loads((method.weights_path.parent / "training_log.json").read_text())
+    assert log["steps"] == 2
+
+
+def test_v1_disjoint_needs_its_training_data(tmp_path):
+    cls = get_method_class("v1-disjoint")
+    assert not cls.needs_ground_truth and cls.needs_fit
+    with pytest.raises(DatasetError, match="train_data"):
+        cls(workdir=tmp_path).fit([])
+    with pytest.raises(DatasetError, match="not usable"):
+        cls(cls.config_cls(train_data=str(tmp_path / "missing")), workdir=tmp_path).fit([])
+
+
+def test_label_source_checks_label_maps(analytic_dataset):
+    video = Dataset(analytic_dataset).video("000001")
+    src = FrameLabelSource([(video, video.frame_ids[0], lambda v, f: np.zeros((3, 3), np.int32))])
+    with pytest.raises(ValueError, match="label map"):
+        src[0]
+    with pytest.raises(ValueError, match="at least one"):
+        FrameLabelSource([])
