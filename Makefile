@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml scripts/install_system_deps.sh
 	touch $@
 
 demo: $(STAMP)
-	$(VENV)/bin/generate_scenes --preset tiny --out $(DEMO)/data
+	bash scripts/demo.sh $(DEMO)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
