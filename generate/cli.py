@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--objects-per-scene", type=int, help="objects dropped per scene")
     p.add_argument("--objects", type=Path, help="folder of user meshes (OBJ/PLY/GLB, metres) instead of the builtin library")
     p.add_argument("--renderer", choices=["cycles", "workbench"], help="image renderer (default: cycles)")
+    p.add_argument("--object-pool", type=lambda v: [n.strip() for n in v.split(",") if n.strip()],
+                   help="comma-separated object names to draw from (e.g. a set disjoint from another dataset's, "
+                        "for the v1-disjoint baseline); default: the preset's pool")
     p.add_argument("--seed", type=int, help="dataset seed (default 0)")
     p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing selfseg dataset in --out")
@@ -67,6 +70,7 @@ def config_from_args(args: argparse.Namespace) -> GenerateConfig:
     return preset_config(args.preset, scenes=args.scenes, frames=args.frames, frame_step=args.frame_step,
                          width=width, height=height, objects_per_scene=args.objects_per_scene,
                          objects_dir=str(args.objects.resolve()) if args.objects else None, seed=args.seed,
+                         object_pool=args.object_pool,
                          render={"renderer": args.renderer} if args.renderer else None)
 
 

@@ -184,3 +184,11 @@ def test_user_objects_folder(tmp_path):
     video = ds.labeled("000000")
     assert set(np.unique(video.inst(0))) - {0} <= set(video.instance_to_object())
     assert (video.inst(0) > 0).any()
+
+
+def test_object_pool_option(tmp_path, capsys):
+    from selfseg.generate.cli import build_parser, config_from_args, main
+    args = build_parser().parse_args(["--preset", "tiny", "--out", str(tmp_path / "a"), "--object-pool", "cube, book,jar,egg"])
+    assert config_from_args(args).object_pool == ["cube", "book", "jar", "egg"]
+    assert main(["--preset", "tiny", "--out", str(tmp_path / "b"), "--object-pool", "cube,nonsense"]) == 2
+    assert "nonsense" in capsys.readouterr().err and not (tmp_path / "b" / "dataset_info.json").exists()
