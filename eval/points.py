@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfseg.dataset import Dataset, DatasetError
+from selfseg.dataset import Dataset, DatasetError, transform_points
 from selfseg.eval.aggregate import BOOTSTRAP_SEED, N_BOOTSTRAP, bootstrap_ci, mean_metrics, per_video
 from selfseg.eval.metrics import OVERLAP_KEYS, PAPER_KEYS, segment_metrics
 from selfseg.raycast import RaycastScene
@@ -72,8 +72,7 @@ def evaluate_points(points: np.ndarray, pred_labels: np.ndarray, dataset: Datase
     if pts.ndim != 2 or pts.shape[1] != 3 or labels.shape != (len(pts),):
         raise ValueError(f"points must be N×3 and labels N, got {pts.shape} and {labels.shape}")
     if T_world_points is not None:
-        T = np.asarray(T_world_points, dtype=np.float64)
-        pts = pts @ T[:3, :3].T + T[:3, 3]
+        pts = transform_points(pts, T_world_points)
     gt = gt_point_labels(pts, dataset, video_id, max_dist_m, models)
     out = segment_metrics(labels, gt)
     out = {k: out[k] for k in POINT_KEYS + ("n_gt", "n_pred", "n_matched")}

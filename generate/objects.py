@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from selfseg.dataset import MODEL_PLY, MODELS_INFO
+from selfseg.dataset import MODEL_PLY, MODELS_INFO, transform_points
 from selfseg.fileio import atomic_write_bytes, write_json
 from selfseg.generate.textures import atlas, make_texture, seed_from_name
 
@@ -76,9 +76,8 @@ class _Part:
     collision: list[np.ndarray]  # point sets whose convex hulls cover the part
 
     def transformed(self, T: np.ndarray) -> "_Part":
-        def tf(p):
-            return p @ T[:3, :3].T + T[:3, 3]
-        return _Part(self.name, tf(self.vertices), self.faces, self.uv, self.texture, [tf(c) for c in self.collision])
+        return _Part(self.name, transform_points(self.vertices, T), self.faces, self.uv, self.texture,
+                     [transform_points(c, T) for c in self.collision])
 
 
 def _compact(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.dataset import VideoWriter, invert_T
+from selfseg.dataset import VideoWriter, invert_T, transform_points
 from selfseg.fileio import atomic_dir
 from selfseg.generate.objects import ObjectModel
 from selfseg.generate.physics import drop_objects
@@ -73,7 +73,7 @@ def camera_orbit(cfg: OrbitConfig, frames: int, center: np.ndarray, rng: np.rand
 def _scene_center(objects: list[ObjectModel], poses: list[np.ndarray]) -> tuple[np.ndarray, float]:
     """Look-at target (centre of the objects' world bounding box in x, y; a third of its height in
     z) and the largest distance of an object vertex from it (m)."""
-    pts = np.concatenate([o.vertices @ T[:3, :3].T + T[:3, 3] for o, T in zip(objects, poses)])
+    pts = np.concatenate([transform_points(o.vertices, T) for o, T in zip(objects, poses)])
     lo, hi = pts.min(0), pts.max(0)
     center = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, max(hi[2], 0.0) / 3])
     return center, float(np.linalg.norm(pts - center, axis=1).max())

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from selfseg.dataset import Video, invert_T
+from selfseg.dataset import Video, invert_T, transform_points
 from selfseg.raycast import backproject
 
 
@@ -159,7 +159,7 @@ def icp_point_to_plane(src: np.ndarray, tree, model_pts: np.ndarray, model_nrm: 
     for k, (max_dist, iters) in enumerate(stages):
         pts = src if k == len(stages) - 1 else src[::3]  # coarse stages: a third of the points
         for _ in range(iters):
-            p = pts @ T[:3, :3].T + T[:3, 3]
+            p = transform_points(pts, T)
             dist, idx = tree.query(p, distance_upper_bound=max_dist)
             m = np.isfinite(dist)
             fitness = float(m.mean())

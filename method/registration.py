@@ -13,6 +13,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from selfseg.dataset import transform_points
+
 MIN_POINTS = 8  # fewer downsampled points than this cannot be registered meaningfully
 
 
@@ -67,11 +69,6 @@ def register(src_pts: np.ndarray, tgt_pts: np.ndarray, voxel_m: float = 0.005, *
     return Registration(np.asarray(icp.transformation).copy(), float(icp.fitness), float(icp.inlier_rmse))
 
 
-def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Apply a 4×4 rigid transform to N×3 points."""
-    return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def precision_recall(src_pts: np.ndarray, tgt_pts: np.ndarray, T_tgt_src: np.ndarray,
                      dist_thresh_m: float) -> tuple[float, float]:
     """(precision, recall) of the aligned source against the target.
@@ -80,7 +77,7 @@ def precision_recall(src_pts: np.ndarray, tgt_pts: np.ndarray, T_tgt_src: np.nda
     Recall: share of target points within ``dist_thresh_m`` of a transformed source point.
     An empty cloud scores 0.
     """
-    src = transform(src_pts, T_tgt_src)
+    src = transform_points(src_pts, T_tgt_src)
     tgt = np.asarray(tgt_pts, dtype=np.float64)
     if len(src) == 0 or len(tgt) == 0:
         return 0.0, 0.0

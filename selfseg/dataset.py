@@ -178,6 +178,12 @@ def T_to_rt(T: np.ndarray) -> tuple[list[float], list[float]]:
     return T[:3, :3].reshape(-1).tolist(), (T[:3, 3] * 1000.0).tolist()
 
 
+def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Apply a 4×4 rigid transform ``T_a_b`` to N×3 points in frame b; returns them in frame a (float64)."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
+
+
 def invert_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4×4 transform."""
     Ti = np.eye(4)

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from selfseg.dataset import transform_points
+
 
 @dataclass
 class RaycastScene:
@@ -26,8 +28,7 @@ class RaycastScene:
         for i, m in enumerate(meshes):
             v = np.asarray(m.vertices, dtype=np.float64)
             if poses is not None:
-                T = np.asarray(poses[i], dtype=np.float64)
-                v = v @ T[:3, :3].T + T[:3, 3]
+                v = transform_points(v, poses[i])
             verts.append(v)
             faces.append(np.asarray(m.faces, dtype=np.int64))
         return cls(verts, faces, list(ids) if ids is not None else list(range(1, len(meshes) + 1)))

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from selfseg.method.matching import MatchConfig, MatchResult, PairMatch, SceneGraph, match_all, match_graphs
 from selfseg.method.pruning import PruneConfig, criterion_cost, criterion_isolation, prune_matches
-from selfseg.method.registration import precision_recall, register, transform
+from selfseg.method.registration import precision_recall, register
+from selfseg.dataset import transform_points
 
 
 def sample(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
@@ -33,8 +34,8 @@ def test_registration_recovers_rigid_copy_and_rejects_other_shape():
     cfg = PruneConfig()
     src = sample(l_shape(), 3000, 0)
     T = rigid(1)
-    reg = register(src, transform(src, T), cfg.reg_voxel_m)
-    assert precision_recall(src, transform(src, T), reg.T_tgt_src, cfg.dist_thresh_m) == (1.0, 1.0)
+    reg = register(src, transform_points(src, T), cfg.reg_voxel_m)
+    assert precision_recall(src, transform_points(src, T), reg.T_tgt_src, cfg.dist_thresh_m) == (1.0, 1.0)
     assert np.abs(reg.T_tgt_src - T).max() < 0.01
     other = sample(trimesh.creation.icosphere(radius=0.045), 3000, 0)
     reg = register(src, other, cfg.reg_voxel_m)
@@ -105,7 +106,7 @@ def test_criterion_registration_rejects_wrong_shape_pair():
     knob = sample(trimesh.creation.icosphere(radius=0.02).apply_translation((-0.07, 0, 0)), 1500, 1)
     plate = sample(trimesh.creation.box((0.005, 0.05, 0.05)).apply_translation((-0.045, 0, 0)), 1500, 2)
     T = rigid(3)
-    clouds = {(0, 0): L, (0, 1): knob, (1, 5): transform(sample(l_shape(), 4000, 9), T), (1, 6): transform(plate, T)}
+    clouds = {(0, 0): L, (0, 1): knob, (1, 5): transform_points(sample(l_shape(), 4000, 9), T), (1, 6): transform_points(plate, T)}
     f = unit(np.random.default_rng(2), 2)
     r = match_graphs(f, np.array([[0, 1]]), f, np.array([[0, 1]]), MatchConfig())
     r.node_map = {i: k + 5 for i, k in r.node_map.items()}

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from selfseg.fileio import read_json
 from selfseg.method.pruning import MatchDecision, NodeDecision
 from selfseg.method.pseudolabels import PseudoLabelConfig, SceneData, make_pseudo_labels, merge_segments
-from selfseg.method.registration import transform
+from selfseg.dataset import transform_points
 from selfseg.method.segment_graph import build_segment_graph
 
 # a three-part object: box, bar and ball in a row, touching
@@ -38,7 +38,7 @@ def make_scene(scene_id, parts, feats, seed):
     pts, lab = [], []
     for p, (mesh, T) in enumerate(parts):
         x = np.asarray(trimesh.sample.sample_surface(mesh, 1500, seed=seed + p)[0])
-        pts.append(transform(x, T))
+        pts.append(transform_points(x, T))
         lab.append(np.full(len(x), order[p]))
     pts.append(rng.uniform(2, 3, size=(10, 3)))  # a few points in no segment
     lab.append(np.full(10, -1))
