@@ -76,13 +76,20 @@ class EmbeddingMethodBase(Method):
         self._net = load_embedding_net(weights_path, self._device)
         self.weights_path = Path(weights_path)
 
-    def embed(self, rgb: np.ndarray) -> np.ndarray:
-        """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale)."""
-        from selfseg.method.features import embed_frames
+    def embed(self, rgb: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:
+        """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale; with
+        ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it)."""
+        from selfseg.method.features import embed_frames, foreground_box
 
         if self._net is None:
             raise RuntimeError(f"method {self.name!r} has no trained network: call fit() or load() first")
-        return embed_frames(self._net, [rgb], self._device, self.config.train.image_size)[0].float().cpu().numpy()
+        train = self.network_train_config()
+        boxes = None if train.crop_margin is None or fg_mask is None else [foreground_box(fg_mask, train.crop_margin)]
+        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes)[0].float().cpu().numpy()
+
+    def network_train_config(self) -> TrainConfig:
+        """The training settings of the network that segments (its scale and foreground crop)."""
+        return self.config.train
 
     def segment(self, video: Video, frame_id: int, fg_mask: np.ndarray) -> np.ndarray:
-        return cluster_frame(self.embed(video.rgb(frame_id)), fg_mask, self.config.cluster)
+        return cluster_frame(self.embed(video.rgb(frame_id), fg_mask), fg_mask, self.config.cluster)

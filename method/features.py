@@ -12,14 +12,37 @@ from selfseg.dataset import Video
 from selfseg.method.network import EmbeddingNet
 
 
+def foreground_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int] | None:
+    """Bounding box (y0, y1, x0, x1; half-open pixel ranges) of a H×W bool mask, grown on every side
+    by ``margin`` × its longer side and clipped to the image; None if the mask is empty."""
+    ys, xs = np.nonzero(mask)
+    if len(ys) == 0:
+        return None
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    pad = int(round(margin * max(y1 - y0, x1 - x0)))
+    h, w = mask.shape
+    return max(0, y0 - pad), min(h, y1 + pad), max(0, x0 - pad), min(w, x1 + pad)
+
+
 @torch.inference_mode()
-def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0
-                 ) -> torch.Tensor:
+def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0,
+                 boxes: list[tuple[int, int, int, int] | None] | None = None) -> torch.Tensor:
     """uint8 H×W×3 frames (same size) → B×D×H×W unit embeddings on ``device``.
 
     ``image_size`` > 0: the frames are resized so their longer side is ``image_size`` (the scale the
     network was trained at, ``TrainConfig.image_size``) and the embeddings resized back to H×W.
+    ``boxes`` (foreground crops, see ``TrainConfig.fg_crop``): frame i is embedded only inside
+    ``boxes[i]`` = (y0, y1, x0, x1), which is what is resized to ``image_size``; pixels outside it get
+    zero vectors. A None box means the whole frame.
     """
+    if boxes is not None:
+        h, w = rgbs[0].shape[:2]
+        out = torch.zeros(len(rgbs), net.cfg.embed_dim, h, w, device=device)
+        for i, (rgb, box) in enumerate(zip(rgbs, boxes)):
+            y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
+            out[i, :, y0:y1, x0:x1] = embed_frames(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device,
+                                                   image_size)[0]
+        return out
     x = torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
     h, w = x.shape[2:]
     if image_size <= 0 or max(h, w) == image_size:
@@ -32,7 +55,7 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
 
 def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segmaps: dict[int, np.ndarray],
                      n_segments: int, device: str | torch.device = "cpu", batch_size: int = 4,
-                     image_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                     image_size: int = 0, fg_crop_margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mean embedding of every segment over all its pixels in ``frame_ids``, L2-normalised.
 
     segmaps: frame id → int H×W map, −1 = no segment, 0..n_segments−1 = segment id (the 3D segment
@@ -53,7 +76,8 @@ def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segm
             if m.max(initial=-1) >= n_segments or m.min(initial=0) < -1:
                 raise ValueError(f"segment map of frame {f} has ids outside [-1, {n_segments - 1}]")
             maps.append(m)
-        emb = embed_frames(net, [video.rgb(f) for f in fids], device, image_size)  # B×D×H×W
+        boxes = None if fg_crop_margin is None else [foreground_box(m >= 0, fg_crop_margin) for m in maps]
+        emb = embed_frames(net, [video.rgb(f) for f in fids], device, image_size, boxes)  # B×D×H×W
         lab = torch.from_numpy(np.stack(maps).astype(np.int64)).to(device)
         keep = lab >= 0
         sums.index_add_(0, lab[keep], emb.permute(0, 2, 3, 1)[keep].double())

@@ -183,7 +183,8 @@ class Ours(EmbeddingMethodBase):
             frames = v.frame_ids[::cfg.feature_stride]
             segmaps = {f: read_label_map(seg_dir / "segmaps" / f"{f:06d}.png") for f in frames}
             feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
-                                            image_size=cfg.phi1_train.image_size)  # φ1 at its training scale
+                                            image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
+                                            fg_crop_margin=cfg.phi1_train.crop_margin)
             recons.append(load_recon(cache.path("recon", v.video_id)))
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write("all", "scenes", key) as tmp:
@@ -203,6 +204,9 @@ class Ours(EmbeddingMethodBase):
         folders = {v.video_id: pseudo / "maps" / v.video_id for v in train_videos}
         source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)])
         return source, {"pseudo": read_json(pseudo / "stage.json")["key_hash"]}
+
+    def network_train_config(self) -> TrainConfig:
+        return self.config.phi1_train if self.config.labels == "overseg" else self.config.train
 
     def fit(self, train_videos: list[Video]) -> None:
         if self.workdir is None:

@@ -25,7 +25,8 @@ from tqdm import tqdm
 from selfseg.config import from_dict, to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import atomic_write_bytes, hash_json, write_json
-from selfseg.method.contrastive import prototype_contrastive_loss
+from selfseg.method.contrastive import NEGATIVES, prototype_contrastive_loss
+from selfseg.method.features import foreground_box
 from selfseg.method.network import EmbeddingNet, NetConfig
 
 WEIGHTS = "weights.pt"
@@ -51,6 +52,12 @@ class TrainConfig:
     saturation: float = 0.3
     hue: float = 0.05  # hue shift, fraction of the full hue circle, drawn in [−x, x]
     min_segment_px: int = 16  # segments with fewer pixels in a crop are ignored
+    # Foreground crop: each frame is first cropped to the bounding box of its labelled pixels grown by
+    # fg_crop_margin × its longer side, so image_size sets the scale of the objects, not of the room
+    # around them. Inference crops to the given foreground mask the same way (features.embed_frames).
+    fg_crop: bool = False
+    fg_crop_margin: float = 0.1
+    negatives: str = "batch"  # scope of the contrastive negatives: "image" or "batch" (method.contrastive)
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
     seed: int = 0
@@ -65,6 +72,15 @@ class TrainConfig:
             raise ValueError(f"crop must be (H, W) with both ≥ 16, got {self.crop}")
         if len(self.scale_range) != 2 or not 0 < self.scale_range[0] <= self.scale_range[1]:
             raise ValueError(f"scale_range must be (lo, hi) with 0 < lo ≤ hi, got {self.scale_range}")
+        if self.negatives not in NEGATIVES:
+            raise ValueError(f"negatives must be one of {NEGATIVES}, got {self.negatives!r}")
+        if self.fg_crop_margin < 0:
+            raise ValueError(f"fg_crop_margin must be ≥ 0, got {self.fg_crop_margin}")
+
+    @property
+    def crop_margin(self) -> float | None:
+        """The foreground-crop margin if ``fg_crop`` is on, else None (what inference passes on)."""
+        return self.fg_crop_margin if self.fg_crop else None
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "TrainConfig":
@@ -150,6 +166,10 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
     """
     img = rgb.astype(np.float32) / 255.0
     lab = labels.astype(np.int32)
+    box = foreground_box(lab >= 0, cfg.fg_crop_margin) if cfg.fg_crop else None
+    if box is not None:
+        y0, y1, x0, x1 = box
+        img, lab = img[y0:y1, x0:x1], lab[y0:y1, x0:x1]
     h, w = lab.shape
     base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
     s = base * rng.uniform(*cfg.scale_range)
@@ -188,7 +208,8 @@ def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: in
     """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step))."""
     rgb, labels = make_batch(source, cfg, step)
     pixel_rng = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-    return prototype_contrastive_loss(net(rgb.to(device)), labels.to(device), cfg.tau, cfg.loss_pixels, pixel_rng)
+    return prototype_contrastive_loss(net(rgb.to(device)), labels.to(device), cfg.tau, cfg.loss_pixels, pixel_rng,
+                                      cfg.negatives)
 
 
 def _train_key(cfg: TrainConfig, net_cfg: NetConfig) -> dict:

@@ -11,8 +11,9 @@ from selfseg.method.contrastive import prototype_contrastive_loss
 torch.set_num_threads(2)
 
 
-def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float) -> float:
-    """Direct implementation: every pixel against every (image, segment) prototype of the batch."""
+def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: str = "batch") -> float:
+    """Direct implementation: every pixel against every (image, segment) prototype of the batch
+    ("batch") or of its own image ("image")."""
     protos = []
     for b in range(emb.shape[0]):
         for s in sorted(set(labels[b].flatten().tolist()) - {-1}):
@@ -26,7 +27,7 @@ def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float) -> float:
                 if s < 0:
                     continue
                 z = emb[b, :, y, x]
-                logits = {k: float(z @ p) / tau for k, p in protos}
+                logits = {k: float(z @ p) / tau for k, p in protos if negatives == "batch" or k[0] == b}
                 denom = sum(math.exp(v) for v in logits.values())
                 total += -(logits[(b, s)] - math.log(denom))
                 count += 1
@@ -41,8 +42,30 @@ def test_loss_matches_direct_loop():
     labels[2] = -1
     labels[2, 0, :3] = 5  # an image with a single segment
     for tau in (0.07, 0.5):
-        got = prototype_contrastive_loss(emb, labels, tau).item()
-        assert got == pytest.approx(loop_loss(emb, labels, tau), rel=1e-9)
+        for negatives in ("batch", "image"):
+            got = prototype_contrastive_loss(emb, labels, tau, negatives=negatives).item()
+            assert got == pytest.approx(loop_loss(emb, labels, tau, negatives), rel=1e-9)
+    # the scopes differ: per-image negatives leave out the other images' segments
+    assert prototype_contrastive_loss(emb, labels, negatives="image") < prototype_contrastive_loss(emb, labels)
+
+
+def test_image_negatives_do_not_push_the_same_object_in_two_images_apart():
+    """Two images of the same two objects (embeddings identical across images): per-image negatives
+    give the same loss as each image alone, batch negatives count the other image's copy against it."""
+    g = torch.Generator().manual_seed(3)
+    one = F.normalize(torch.randn(1, 4, 5, 6, generator=g, dtype=torch.float64), dim=1)
+    lab = torch.zeros(1, 5, 6, dtype=torch.long)
+    lab[0, :, 3:] = 1
+    alone = prototype_contrastive_loss(one, lab, negatives="image").item()
+    two, labs = one.repeat(2, 1, 1, 1), lab.repeat(2, 1, 1)
+    assert prototype_contrastive_loss(two, labs, negatives="image").item() == pytest.approx(alone, rel=1e-12)
+    assert prototype_contrastive_loss(two, labs, negatives="batch").item() > alone + 0.5
+
+
+def test_unknown_negatives_scope_is_refused():
+    emb = F.normalize(torch.randn(1, 4, 3, 3, dtype=torch.float64), dim=1)
+    with pytest.raises(ValueError, match="negatives"):
+        prototype_contrastive_loss(emb, torch.zeros(1, 3, 3, dtype=torch.long), negatives="scene")
 
 
 def test_pixel_subsampling_averages_over_the_drawn_pixels():

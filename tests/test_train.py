@@ -10,7 +10,7 @@ from analytic import make_dataset, two_box_scenes
 from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import Dataset, DatasetError, ground_truth_forbidden
 from selfseg.method.embed_method import EmbeddingMethodConfig
-from selfseg.method.features import embed_frames, segment_features
+from selfseg.method.features import embed_frames, foreground_box, segment_features
 from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import FrameLabelSource, TrainConfig, augment, load_embedding_net, train_embedding
@@ -67,6 +67,42 @@ def test_augment_keeps_labels_aligned_with_pixels():
             vals = red[(out == k)]
             interior = np.abs(vals - (60 * k + 20) / 255) < 0.02
             assert interior.mean() > 0.8  # label k sits on colour k (edges blur by interpolation)
+
+
+def test_foreground_box_grows_by_the_margin_and_clips():
+    mask = np.zeros((100, 200), bool)
+    mask[40:60, 50:90] = True  # 20 × 40 px
+    assert foreground_box(mask, 0.0) == (40, 60, 50, 90)
+    assert foreground_box(mask, 0.25) == (30, 70, 40, 100)  # 0.25 × 40 = 10 px on every side
+    assert foreground_box(mask, 2.0) == (0, 100, 0, 170)
+    assert foreground_box(np.zeros((4, 4), bool), 0.1) is None
+
+
+def test_fg_crop_sets_the_scale_of_the_objects_not_the_frame():
+    """A 16×16 object in a 240×320 frame: with fg_crop it fills the 64-px training image, without it
+    it stays a few pixels wide."""
+    rgb = np.zeros((240, 320, 3), np.uint8)
+    lab = np.full((240, 320), -1, np.int32)
+    lab[100:116, 200:216] = 0
+    rgb[100:116, 200:216] = 255
+    common = dict(image_size=64, crop=(64, 64), scale_range=(1, 1), flip=False, brightness=0, contrast=0,
+                  saturation=0, hue=0, min_segment_px=1)
+    _, plain = augment(rgb, lab, TrainConfig(**common), np.random.default_rng(0))
+    img, crop = augment(rgb, lab, TrainConfig(fg_crop=True, fg_crop_margin=0.1, **common), np.random.default_rng(0))
+    assert (plain >= 0).sum() <= 16
+    assert (crop >= 0).sum() > 0.6 * 64 * 64
+    assert np.abs(img[0][crop >= 0] - 1.0).mean() < 0.05  # the label still sits on the object's pixels
+
+
+def test_embedding_inside_a_box_equals_embedding_the_crop():
+    torch.manual_seed(0)
+    net = EmbeddingNet(NetConfig(width=8, aspp_channels=8, low_level_channels=8, decoder_channels=8)).eval()
+    rgb = np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    box = (10, 42, 20, 68)
+    full = embed_frames(net, [rgb], "cpu", 96, [box])[0]
+    crop = embed_frames(net, [np.ascontiguousarray(rgb[10:42, 20:68])], "cpu", 96)[0]
+    assert torch.allclose(full[:, 10:42, 20:68], crop, atol=1e-6)
+    assert float(full[:, :10].abs().max()) == 0.0 and float(full[:, :, 68:].abs().max()) == 0.0
 
 
 def test_augment_jitter_changes_colour_only_and_drops_small_segments():
