@@ -22,6 +22,8 @@ METHODS: dict[str, str] = {
     "ours-v2": "selfseg.method.pipeline:OursV2",
     "ours-v3": "selfseg.method.pipeline:OursV3",
     "ours-v4": "selfseg.method.pipeline:OursV4",
+    "picie": "selfseg.baselines.picie:Picie",
+    "stego": "selfseg.baselines.stego:Stego",
 }
 
 
