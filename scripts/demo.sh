@@ -15,6 +15,9 @@ for m in one-segment fg-components depth-clustering lccp-frame oracle; do
   $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS"
 done
 $BIN/evaluate --method supervised --data "$DATA" --config configs/supervised-tiny.yaml --out "$RESULTS"
+for m in picie stego; do
+  $BIN/evaluate --method "$m" --data "$DATA" --config "configs/$m-tiny.yaml" --out "$RESULTS"
+done
 for m in ours ours-v2 ours-v3 ours-v4; do
   $BIN/evaluate --method "$m" --data "$DATA" --config configs/ours-tiny.yaml --out "$RESULTS"
 done
