@@ -36,8 +36,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, SemanticMethodBase, UnlabeledFrames,
-                                                  begin_training, final_centroids, finished, result_key, sample_pixels,
-                                                  save_final, spherical_kmeans, train_loop)
+                                                  begin_training, final_centroids, finished, sample_pixels, save_final,
+                                                  spherical_kmeans, train_loop, training_key)
 from selfseg.config import from_dict, to_dict
 from selfseg.method.network import ENCODER_BLOCKS, RGB_MEAN, RGB_STD, ResNetEncoder, _conv_bn_relu
 from selfseg.method.train import _jitter, augment
@@ -91,8 +91,8 @@ class PicieConfig(SemanticConfig):
     """PiCIE's network, schedule and losses (plus the shared classes, clustering and instance settings)."""
 
     net: PicieNetConfig = field(default_factory=PicieNetConfig)
-    train: Schedule = field(default_factory=lambda: Schedule(steps=2000, batch_size=8, lr=1e-3))
-    cluster_every: int = 200  # steps per epoch: the views' features are re-clustered at every epoch start
+    train: Schedule = field(default_factory=lambda: Schedule(steps=1000, batch_size=8, lr=1e-3))
+    cluster_every: int = 100  # steps per epoch: the views' features are re-clustered at every epoch start
     tau: float = 1.0  # logits z·μ/τ; 1 = PiCIE's cosine classifier
     within_weight: float = 0.5
     cross_weight: float = 0.5
@@ -221,7 +221,7 @@ class Picie(SemanticMethodBase):
 def train_picie(frames: UnlabeledFrames, cfg: PicieConfig, out_dir: Path, progress: bool = True
                 ) -> tuple[PicieNet, torch.Tensor]:
     """Train PiCIE into ``out_dir`` (resumable; a finished run is loaded) → (network, K test centroids)."""
-    key = {"method": "picie", "config": result_key(cfg), "frames": len(frames)}
+    key = {"method": "picie", "config": training_key(cfg), "frames": len(frames)}
     weights = Path(out_dir) / "weights.pt"
     saved = finished(weights, key)
     if saved is None:

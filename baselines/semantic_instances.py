@@ -21,7 +21,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import numpy as np
 import torch
@@ -104,6 +104,9 @@ class SemanticConfig:
     # class → instances: as ours' post-processing (MeanShiftConfig), whose defaults these are
     min_component_px: int = MeanShiftConfig.min_component_px
     connectivity: int = MeanShiftConfig.connectivity
+    # "components": every class split into connected components (the default, see the module docstring);
+    # "classes": each class inside the foreground is one segment (no split), to show what the split adds
+    instances: Literal["components", "classes"] = "components"
     frame_stride: int = 3  # training uses every n-th frame of each training video
     background: BackgroundConfig = field(default_factory=BackgroundConfig)  # training-frame foreground
     device: str = "auto"  # inference device
@@ -320,7 +323,7 @@ class SemanticMethodBase(Method):
             raise ValueError(f"method {self.name!r} needs a workdir to store its trained network")
         cfg = self.config
         frames = UnlabeledFrames(train_videos, cfg.frame_stride, cfg.background)
-        key = {"method": self.name, "config": result_key(cfg), "data": [video_key(v) for v in train_videos]}
+        key = {"method": self.name, "config": training_key(cfg), "data": [video_key(v) for v in train_videos]}
         net, centroids = self.train_model(frames, self.workdir / f"{self.name}-{hash_json(key)}")
         self._net = net.to(self._device).eval()
         self._centroids = centroids.to(self._device)
@@ -338,6 +341,8 @@ class SemanticMethodBase(Method):
         fg = np.asarray(fg_mask, bool)
         emb = self.features(video.rgb(frame_id), fg)
         classes = torch.einsum("dhw,kd->khw", emb, self._centroids).argmax(0).cpu().numpy()
+        if self.config.instances == "classes":
+            return np.where(fg, classes + 1, 0).astype(np.int32)
         return classes_to_instances(classes, fg, self.config.connectivity, self.config.min_component_px)
 
 
@@ -367,6 +372,12 @@ def final_centroids(net: nn.Module, frames: UnlabeledFrames, sched: Schedule, cf
 def save_final(path: Path, key: dict, **tensors: Any) -> None:
     """Atomically save the final state of a method (state dicts, centroids) under its key."""
     _save_torch(path, {"key_hash": hash_json(key), **tensors})
+
+
+def training_key(cfg: SemanticConfig) -> dict:
+    """What a method's training depends on: its config without runtime and test-time-only fields
+    (the class → instance post-processing), so changing those reuses the trained network."""
+    return {k: v for k, v in result_key(cfg).items() if k not in ("min_component_px", "connectivity", "instances")}
 
 
 def result_key(cfg: Any) -> Any:

@@ -42,7 +42,7 @@ from torch import nn
 
 from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, SemanticMethodBase, UnlabeledFrames,
                                                   begin_training, final_centroids, finished, result_key, save_final,
-                                                  train_loop)
+                                                  train_loop, training_key)
 from selfseg.fileio import hash_json
 from selfseg.method.features import foreground_box
 from selfseg.method.network import RGB_MEAN, RGB_STD
@@ -356,7 +356,7 @@ def train_stego(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progre
     """All three phases into ``out_dir`` (``dino/`` and the head; resumable) → (network, K centroids)."""
     out_dir = Path(out_dir)
     vit, dino_key = train_dino(frames, cfg, out_dir / "dino", progress)
-    key = {"phase": "stego", "dino": hash_json(dino_key), "config": result_key(cfg)}
+    key = {"phase": "stego", "dino": hash_json(dino_key), "config": training_key(cfg)}
     weights = out_dir / "weights.pt"
     saved = finished(weights, key)
     if saved is not None:

@@ -10,7 +10,7 @@ import torch
 from selfseg.baselines.picie import (Geometric, PicieConfig, PicieNet, PicieNetConfig, apply_geometric, picie_loss,
                                      sample_geometric, train_picie)
 from selfseg.baselines.semantic_instances import (Schedule, UnlabeledFrames, classes_to_instances, frame_foreground,
-                                                  spherical_kmeans)
+                                                  spherical_kmeans, training_key)
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import main as evaluate
 from selfseg.generate.cli import main as generate_scenes
@@ -116,6 +116,12 @@ def test_classes_become_connected_components_with_ours_min_size():
     assert inst[:, 28:].max() == 0
     assert len(np.unique(inst[fg])) == 3
     assert inst[11, 21] == inst[0, 20] != inst[3, 3] != inst[19, 0]
+
+
+def test_instance_settings_reuse_the_trained_network():
+    base = training_key(PicieConfig())
+    assert training_key(PicieConfig(instances="classes", min_component_px=5, connectivity=4, device="cpu")) == base
+    assert training_key(PicieConfig(n_classes=5)) != base
 
 
 def test_training_foreground_comes_from_depth_above_the_support_plane(analytic_dataset):
