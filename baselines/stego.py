@@ -336,8 +336,8 @@ def nearest_frames(vit: ViT, frames: UnlabeledFrames, sched: Schedule, k: int, m
     feats = []
     for rgb, lab in frames:
         fg = lab >= 0
-        y0, y1, x0, x1 = (foreground_box(fg, sched.fg_crop_margin) if sched.fg_crop else None) or (0, *fg.shape[:1],
-                                                                                                  0, fg.shape[1])
+        box = foreground_box(fg, sched.fg_crop_margin) if sched.fg_crop else None
+        y0, y1, x0, x1 = box if box is not None else (0, fg.shape[0], 0, fg.shape[1])
         s = sched.image_size / max(y1 - y0, x1 - x0)
         size = (max(1, round((x1 - x0) * s)), max(1, round((y1 - y0) * s)))
         img = cv2.resize(rgb[y0:y1, x0:x1].astype(np.float32) / 255.0, size, interpolation=cv2.INTER_AREA)

@@ -1,7 +1,6 @@
 """Baseline F (`stego`): DINO's loss and centre, STEGO's correlation loss against slow loops,
 patch masks, the ViT, determinism and resume of both phases, and the end-to-end run on tiny."""
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -98,7 +97,8 @@ def test_patch_foreground_and_vit_padding():
 
 def tiny_stego(**kw) -> StegoConfig:
     return StegoConfig(**{**dict(vit=ViTConfig(dim=16, depth=1, heads=2, pos_grid=6),
-                                 dino=DinoConfig(train=tiny_sched(), out_dim=16, global_px=16, local_crops=1, local_px=8),
+                                 dino=DinoConfig(train=tiny_sched(), out_dim=16, global_px=16, local_crops=1,
+                                                 local_px=8),
                                  head=StegoHeadConfig(embed_dim=4), train=tiny_sched(steps=4), n_classes=3, knn=2,
                                  kmeans_iters=5, kmeans_pixels=2000), **kw})
 
