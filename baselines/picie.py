@@ -210,9 +210,6 @@ class Picie(SemanticMethodBase):
     name = "picie"
     config_cls = PicieConfig
 
-    def schedule(self) -> Schedule:
-        return self.config.train
-
     def train_model(self, frames: UnlabeledFrames, out_dir: Path, progress: bool = True
                     ) -> tuple[PicieNet, torch.Tensor]:
         return train_picie(frames, self.config, out_dir, progress)

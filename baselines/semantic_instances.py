@@ -298,7 +298,8 @@ def finished(weights: Path, key: dict) -> dict | None:
 class SemanticMethodBase(Method):
     """Unsupervised semantic features + k-means classes → connected-component instances.
 
-    Subclasses implement :meth:`train_model`, which returns the network (forward: B×3×H×W in [0, 1] →
+    Configs have a ``train`` :class:`Schedule` (the segmenting network's). Subclasses implement
+    :meth:`train_model`, which returns the network (forward: B×3×H×W in [0, 1] →
     B×D×H×W unit features, with ``net.cfg.embed_dim`` = D) and the K unit class centroids.
     """
 
@@ -310,10 +311,6 @@ class SemanticMethodBase(Method):
         self._device = resolve_device(self.config.device)
         self._net: nn.Module | None = None
         self._centroids: torch.Tensor | None = None
-
-    def schedule(self) -> Schedule:
-        """The schedule whose scale and foreground crop the segmenting network was trained with."""
-        raise NotImplementedError
 
     def train_model(self, frames: UnlabeledFrames, out_dir: Path) -> tuple[nn.Module, torch.Tensor]:
         raise NotImplementedError
@@ -333,7 +330,7 @@ class SemanticMethodBase(Method):
         ``fg_crop``, zero outside it)."""
         if self._net is None:
             raise RuntimeError(f"method {self.name!r} has no trained network: call fit() first")
-        sched = self.schedule()
+        sched = self.config.train  # the segmenting network's schedule: its scale and foreground crop
         boxes = [foreground_box(fg_mask, sched.fg_crop_margin)] if sched.fg_crop else None
         return embed_frames(self._net, [rgb], self._device, sched.image_size, boxes)[0]
 

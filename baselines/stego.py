@@ -405,8 +405,5 @@ class Stego(SemanticMethodBase):
     name = "stego"
     config_cls = StegoConfig
 
-    def schedule(self) -> Schedule:
-        return self.config.train
-
     def train_model(self, frames: UnlabeledFrames, out_dir: Path) -> tuple[StegoNet, torch.Tensor]:
         return train_stego(frames, self.config, out_dir)
