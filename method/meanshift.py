@@ -23,10 +23,13 @@ import numpy as np
 class MeanShiftConfig:
     """Clustering settings; lengths in normalised image units (pixels / max(H, W))."""
 
-    kappa: float = 20.0  # vMF concentration (≈ 1/τ of the contrastive loss scale)
+    # vMF concentration: 1/τ of the contrastive loss (τ = 0.07), the sharpness the loss trains for.
+    # Measured on a development set (benchmark preset, seed 100, never a test fold), supervised net:
+    # κ 20 / merge .8 (the old defaults) IoU .656, κ 14 / merge .7 .726, κ 10 .723, κ 7 .703, κ 40 .548.
+    kappa: float = 14.3
     n_seeds: int = 32  # initial modes, picked by farthest-point sampling in the kernel's metric
     iters: int = 10  # mean-shift iterations (stops early once modes move < 1e-4)
-    merge_threshold: float = 0.8  # converged modes with cosine ≥ this (and close, see merge_xy) merge
+    merge_threshold: float = 0.7  # converged modes with cosine ≥ this (and close, see merge_xy) merge
     spatial_sigma: float = 0.15  # σ of the Gaussian proximity kernel; 0 disables the proximity term
     merge_xy: float = 0.3  # modes farther apart than this never merge (only when spatial_sigma > 0)
     max_pixels: int = 4000  # mode finding runs on at most this many pixels; all pixels are then assigned
