@@ -24,6 +24,8 @@ METHODS: dict[str, str] = {
     "ours-v4": "selfseg.method.pipeline:OursV4",
     "picie": "selfseg.baselines.picie:Picie",
     "stego": "selfseg.baselines.stego:Stego",
+    "uois-sim": "selfseg.baselines.uois:UoisSim",
+    "sdmaskrcnn-sim": "selfseg.baselines.maskrcnn:SDMaskRCNNSim",
 }
 
 

@@ -198,6 +198,8 @@ def run_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out:
                     "score_ms_per_frame": round(1000 * score_s / max(n_frames, 1), 4)},
         "predictions_dir": str(pred_dir.resolve()),
     }
+    if getattr(method, "train_data", None):  # hook: a method trained on another dataset names it (a dict) in fit
+        record["train_data"] = method.train_data
     write_result(out, record, evaluator.frames)
     return record
 

@@ -1,0 +1,119 @@
+"""Training data of the Table I baselines trained on synthetic scenes of *other* objects
+(``uois-sim``, ``sdmaskrcnn-sim``): the disjoint-pool dataset, its checks and its frames.
+
+The training dataset is a separate folder (``train_data``), generated with ``generate_scenes
+--object-pool`` so that it holds none of the test dataset's objects. Its ground truth is read
+freely: the evaluator's guard only covers the *test* dataset's folder. A missing dataset or one
+sharing an object name with the test dataset raises :class:`selfseg.dataset.DatasetError`
+(``evaluate`` prints it as one line, exit 2).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from selfseg.dataset import Dataset, DatasetError
+from selfseg.fileio import hash_json
+
+
+@dataclass
+class SimSchedule:
+    """Optimisation of one supervised training phase (AdamW, polynomial decay to 0; steps of ``batch_size``
+    full training frames, randomly flipped)."""
+
+    steps: int = 2000
+    batch_size: int = 4
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    checkpoint_every: int = 200
+    device: str = "auto"  # "auto" → cuda if available, else cpu
+    threads: int = 0  # torch CPU threads; 0 = torch's default
+
+    def __post_init__(self):
+        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
+            raise ValueError(f"steps, batch_size and checkpoint_every must be ≥ 1, got {self.steps}, "
+                             f"{self.batch_size} and {self.checkpoint_every}")
+        if not self.lr > 0 or self.weight_decay < 0:
+            raise ValueError(f"lr must be > 0 and weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
+
+
+def object_names(ds: Dataset) -> set[str]:
+    """Names of the objects a dataset draws from (``dataset_info.json`` → ``objects``)."""
+    return {str(o["name"]) for o in ds.info.get("objects", [])}
+
+
+def open_disjoint_train_data(path: str, test_root: Path, method: str) -> Dataset:
+    """The training dataset at ``path``, checked to exist and to share no object with the test dataset."""
+    if not path:
+        raise DatasetError(f"{method} needs train_data: a dataset generated with an object pool disjoint from the "
+                           f"test data (generate_scenes --object-pool ...), given with --set train_data=PATH")
+    try:
+        train = Dataset(path)
+    except DatasetError as e:
+        raise DatasetError(f"{method} train_data is not usable: {e}") from None
+    test = Dataset(test_root)
+    if train.root.resolve() == test.root.resolve():
+        raise DatasetError(f"{method} train_data {path} is the test dataset itself; give a disjoint-object dataset")
+    shared = sorted(object_names(train) & object_names(test))
+    if shared:
+        raise DatasetError(f"{method} train_data {path} shares objects with the test dataset {test.root}: "
+                           f"{', '.join(shared)}; generate it with a disjoint --object-pool")
+    return train
+
+
+def train_data_record(ds: Dataset) -> dict:
+    """What a run's provenance records of its training dataset."""
+    return {"name": ds.name, "root": str(ds.root.resolve()), "content_hash": ds.content_hash(),
+            "n_videos": len(ds.video_ids), "objects": sorted(object_names(ds))}
+
+
+def xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Organised point map: depth (m, H×W) → camera-frame XYZ H×W×3 float32 (m), zeros where depth is 0."""
+    h, w = depth_m.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    z = depth_m.astype(np.float32)
+    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).astype(np.float32)
+
+
+class GTFrames:
+    """Every ``frame_stride``-th frame of every video of a labelled dataset: (rgb uint8 H×W×3,
+    depth float32 H×W m, xyz float32 H×W×3 m, inst int32 H×W), read once and kept in memory."""
+
+    def __init__(self, ds: Dataset, frame_stride: int):
+        self.items = [(ds.labeled(v), f) for v in ds.video_ids for f in ds.labeled(v).frame_ids[::frame_stride]]
+        self._cache: dict[int, tuple[np.ndarray, ...]] = {}
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, ...]:
+        if i not in self._cache:
+            video, f = self.items[i]
+            depth = video.depth_m(f)
+            self._cache[i] = (video.rgb(f), depth, xyz_map(depth, video.K(f)), video.inst(f).astype(np.int32))
+        return self._cache[i]
+
+    def batch(self, seed: int, step: int, batch_size: int) -> list[tuple[np.ndarray, ...]]:
+        """The frames of training step ``step``, a pure function of (seed, step), each flipped
+        left-right with probability ½ (xyz's x negated with it, so the map stays a camera-frame one)."""
+        rng = np.random.default_rng([seed, step])
+        idx = rng.choice(len(self), batch_size, replace=len(self) < batch_size)
+        out = []
+        for i in idx:
+            rgb, depth, xyz, inst = self[int(i)]
+            if rng.random() < 0.5:
+                xyz = xyz[:, ::-1] * np.array([-1, 1, 1], np.float32)
+                rgb, depth, inst = rgb[:, ::-1], depth[:, ::-1], inst[:, ::-1]
+            out.append(tuple(np.ascontiguousarray(a) for a in (rgb, depth, xyz, inst)))
+        return out
+
+
+def shared_train_dir(workdir: Path | None, method: str, key: dict) -> Path:
+    """Where a method trained only on ``train_data`` keeps its networks: beside the fold folders
+    (``work/<run>/<dataset>/<method>-<key hash>``), so the three folds train once; the hash keeps
+    other settings apart."""
+    fold_dir = Path(workdir) if workdir is not None else Path("work/fold")
+    return fold_dir.parent / f"{method}-{hash_json(key)[:12]}"
