@@ -46,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(<video_id>/<frame_id:06d>.png)")
     p.add_argument("--name", help="name of this run in results and leaderboards (default: the method name)")
     p.add_argument("--poses-given", action="store_true", help="give methods ground-truth camera poses (ablation)")
+    p.add_argument("--foreground", choices=("gt", "plane"), default="gt",
+                   help="foreground given to methods: gt (the paper's protocol) or plane (estimated from depth by "
+                   "removing the support plane; scored on the GT foreground; run name gets '@fg-plane')")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
     p.add_argument("--list-methods", action="store_true", help="list registered methods and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -85,11 +88,15 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"predictions={args.predictions}")
     config = load_config(cls.config_cls, args.config, overrides)
     try:
-        options = EvalOptions(folds=args.folds, frame_stride=args.frame_stride, limit=args.limit, name=args.name,
-                              poses_given=args.poses_given)
+        options = EvalOptions(folds=args.folds, frame_stride=args.frame_stride, limit=args.limit,
+                              name=args.name or (f"{args.method}@fg-plane" if args.foreground == "plane" else None),
+                              poses_given=args.poses_given, foreground=args.foreground)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     dataset = Dataset(args.data)
+    if not dataset.has_labels():
+        raise DatasetError(f"{dataset.root}: has no ground truth (no scene_gt.json / mask_inst/), so evaluate cannot "
+                           "score it; use train and segment for unlabeled recordings")
     records = [run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet) for k in options.folds]
     print(format_table(options.name or args.method, records))
     print(f"results: {args.out / 'scores' / dataset.name / (options.name or args.method)}")

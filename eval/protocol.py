@@ -58,6 +58,9 @@ class EvalOptions:
     limit: int | None = None  # at most this many test frames per held-out video (quick runs)
     name: str | None = None  # result name (default: the method name), for variants and external runs
     poses_given: bool = False  # give methods the ground-truth camera poses (ablation)
+    # Foreground given to methods: "gt" (the paper's protocol) or "plane" (estimated from each frame's depth
+    # by removing the support plane, as a robot would; scoring still uses the ground-truth foreground)
+    foreground: str = "gt"
     n_boot: int = N_BOOTSTRAP
     seed: int = BOOTSTRAP_SEED  # bootstrap seed
 
@@ -66,6 +69,8 @@ class EvalOptions:
             raise ValueError(f"frame_stride must be ≥ 1, got {self.frame_stride}")
         if self.limit is not None and self.limit < 1:
             raise ValueError(f"limit must be ≥ 1, got {self.limit}")
+        if self.foreground not in ("gt", "plane"):
+            raise ValueError(f"foreground must be 'gt' or 'plane', got {self.foreground!r}")
         bad = [k for k in self.folds if not 0 <= k < N_FOLDS]
         if bad or not self.folds:
             raise ValueError(f"folds must be a non-empty subset of 0..{N_FOLDS - 1}, got {list(self.folds)}")
@@ -133,6 +138,15 @@ def _check_prediction(pred, name: str, video_id: str, frame_id: int, shape: tupl
     return pred
 
 
+def estimated_foreground(video, frame_id: int) -> np.ndarray:
+    """bool H×W foreground of ``--foreground plane``: the frame's depth points above the support plane
+    (RANSAC with the default :class:`BackgroundConfig`, the methods' own background stage)."""
+    from selfseg.baselines.semantic_instances import frame_foreground
+    from selfseg.method.background import BackgroundConfig
+
+    return frame_foreground(video, frame_id, BackgroundConfig())
+
+
 def run_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out: Path,
              options: EvalOptions = EvalOptions(), progress: bool = True) -> dict:
     """Fit, segment, write and score one fold; writes the result JSON and frame sidecar; returns the record."""
@@ -167,7 +181,7 @@ def run_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out:
         fg = {}
         for f in frames:
             gts[vid, f] = labeled.inst(f)
-            fg[f] = gts[vid, f] > 0
+            fg[f] = gts[vid, f] > 0 if options.foreground == "gt" else estimated_foreground(labeled, f)
         video = open_video(vid)
         t0 = time.perf_counter()
         with guard():

@@ -413,6 +413,10 @@ class Dataset:
     def models_info(self) -> dict[int, dict]:
         return {int(k): v for k, v in read_json(self.root / MODELS_INFO).items()}
 
+    def has_labels(self) -> bool:
+        """Whether every video has ground truth (imported recordings may have none)."""
+        return all((self.root / SCENE_GT.format(video_id=v)).is_file() for v in self.video_ids)
+
     def content_hash(self) -> str:
         """Hash of the dataset's metadata and every video's camera and ground-truth records."""
         parts: list[Any] = [self.info]
@@ -507,20 +511,26 @@ class VideoWriter:
     def _frame(self, sub: str, frame_id: int) -> Path:
         return self.dir / sub / f"{frame_id:06d}.png"
 
-    def write_frame(self, frame_id: int, rgb: np.ndarray, depth_m: np.ndarray, inst: np.ndarray,
-                    K: np.ndarray, T_world_cam: np.ndarray, objects: list[dict],
+    def write_frame(self, frame_id: int, rgb: np.ndarray, depth_m: np.ndarray, inst: np.ndarray | None,
+                    K: np.ndarray, T_world_cam: np.ndarray, objects: list[dict] | None,
                     depth_scale: float = DEPTH_SCALE_MM) -> None:
-        """objects: [{obj_id, inst_id, T_cam_model (4×4 m)}] visible or not."""
+        """objects: [{obj_id, inst_id, T_cam_model (4×4 m)}] visible or not. An unlabeled video
+        (recorded data) passes ``inst=None`` and ``objects=None``: no ground truth is written."""
         write_rgb(self._frame("rgb", frame_id), rgb)
         write_depth_m(self._frame("depth", frame_id), depth_m, depth_scale)
-        write_inst(self._frame("mask_inst", frame_id), inst)
+        if inst is not None:
+            write_inst(self._frame("mask_inst", frame_id), inst)
         self.cameras[str(frame_id)] = camera_record(K, T_world_cam, depth_scale)
-        self.gts[str(frame_id)] = [gt_record(o["obj_id"], o["inst_id"], o["T_cam_model"]) for o in objects]
+        if objects is not None:
+            self.gts[str(frame_id)] = [gt_record(o["obj_id"], o["inst_id"], o["T_cam_model"]) for o in objects]
 
-    def finish(self, scene_info: dict) -> None:
+    def finish(self, scene_info: dict | None) -> None:
+        """Write the JSON records (ground truth only if frames had labels); scene_camera.json last,
+        since it marks a complete video."""
+        if scene_info is not None:
+            write_json(self.dir / "scene_gt.json", self.gts)
+            write_json(self.dir / "scene_info.json", scene_info)
         write_json(self.dir / "scene_camera.json", self.cameras)
-        write_json(self.dir / "scene_gt.json", self.gts)
-        write_json(self.dir / "scene_info.json", scene_info)
 
 
 def open_dataset(root: str | os.PathLike) -> Dataset:
