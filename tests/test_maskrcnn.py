@@ -88,10 +88,11 @@ def test_a_training_step_is_deterministic_and_finite(analytic_dataset):
 def test_sdmaskrcnn_end_to_end_on_tiny(tiny, tiny_disjoint, tmp_path):  # noqa: F811
     assert evaluate(["--method", "sdmaskrcnn-sim", "--data", str(tiny), "--out", str(tmp_path), "--folds", "0",
                      "--quiet", "--config", str(CONFIGS / "sdmaskrcnn-sim-tiny.yaml"),
-                     "--set", f"train_data={tiny_disjoint}", "--set", "frame_stride=2", "--set", "train.steps=60"]) == 0
+                     "--set", f"train_data={tiny_disjoint}", "--set", "frame_stride=2", "--set", "train.steps=100",
+                     "--set", "score_threshold=0.3"]) == 0
     rec = fold0(tmp_path, "sdmaskrcnn-sim")
     m = rec["metrics"]
     print({k: round(m[k], 3) for k in ("P", "R", "IoU")})
     assert rec["train_data"]["content_hash"] == Dataset(tiny_disjoint).content_hash()
     assert m["n_frames"] > 0
-    assert m["IoU"] > 0.05
+    assert m["IoU"] > 0.1  # measured .24 (P .49); one-segment scores ~.1 on tiny
