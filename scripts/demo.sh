@@ -10,6 +10,9 @@ DATA=$RUN/data
 RESULTS=$RUN/results
 
 $BIN/generate_scenes --preset tiny --out "$DATA"
+# Training set of the baselines trained on other objects (uois-sim, sdmaskrcnn-sim): none of tiny's objects.
+TRAIN=$RUN/train-disjoint
+$BIN/generate_scenes --preset tiny --object-pool cube,book,jar,egg,can_soup,chips_tube,flowerpot,hex_box --out "$TRAIN"
 
 for m in one-segment fg-components depth-clustering lccp-frame oracle; do
   $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS"
@@ -17,6 +20,9 @@ done
 $BIN/evaluate --method supervised --data "$DATA" --config configs/supervised-tiny.yaml --out "$RESULTS"
 for m in picie stego; do
   $BIN/evaluate --method "$m" --data "$DATA" --config "configs/$m-tiny.yaml" --out "$RESULTS"
+done
+for m in uois-sim sdmaskrcnn-sim; do
+  $BIN/evaluate --method "$m" --data "$DATA" --config "configs/$m-tiny.yaml" --set "train_data=$TRAIN" --out "$RESULTS"
 done
 for m in ours ours-v2 ours-v3 ours-v4; do
   $BIN/evaluate --method "$m" --data "$DATA" --config configs/ours-tiny.yaml --out "$RESULTS"
