@@ -178,7 +178,7 @@ class MaskHead(nn.Module):
         return self.out(F.relu(self.up(self.convs(x))))[:, 0]
 
 
-def _proposals(model: MaskRCNN, anchors: torch.Tensor, obj: torch.Tensor, deltas: torch.Tensor, hw: tuple[int, int],
+def _proposals(anchors: torch.Tensor, obj: torch.Tensor, deltas: torch.Tensor, hw: tuple[int, int],
                pre: int, post: int, thr: float) -> list[torch.Tensor]:
     out = []
     for b in range(obj.shape[0]):
@@ -210,7 +210,7 @@ def detection_loss(model: MaskRCNN, cfg: SDMaskRCNNConfig, frames: list[tuple[np
     obj, deltas = model.rpn(feats)
     anchors = torch.cat(anchors_for(H, W, model.cfg))
     with torch.no_grad():
-        props = _proposals(model, anchors, obj.detach(), deltas.detach(), (H, W), cfg.pre_nms, cfg.post_nms, cfg.rpn_nms)
+        props = _proposals(anchors, obj.detach(), deltas.detach(), (H, W), cfg.pre_nms, cfg.post_nms, cfg.rpn_nms)
     rpn_cls, rpn_reg, rois, roi_tgt, roi_lab, roi_masks = [], [], [], [], [], []
     for b, f in enumerate(frames):
         ids, gt = masks_to_boxes(f[3], cfg.min_instance_px)
@@ -266,7 +266,7 @@ def detect(model: MaskRCNN, cfg: SDMaskRCNNConfig, depth_m: np.ndarray) -> tuple
     feats = model.features(torch.from_numpy(depth_input(depth_m, cfg.depth_scale_m))[None])
     obj, deltas = model.rpn(feats)
     anchors = torch.cat(anchors_for(H, W, model.cfg))
-    props = _proposals(model, anchors, obj, deltas, (H, W), cfg.pre_nms // 2, cfg.post_nms // 2, cfg.rpn_nms)[0]
+    props = _proposals(anchors, obj, deltas, (H, W), cfg.pre_nms // 2, cfg.post_nms // 2, cfg.rpn_nms)[0]
     rois = torch.cat([torch.zeros(len(props), 1), props], 1)
     h = model.box_head(model.pool(feats, rois, 7))
     scores = torch.sigmoid(model.box_cls(h)[:, 0])
