@@ -80,6 +80,23 @@ def evaluate_points(points: np.ndarray, pred_labels: np.ndarray, dataset: Datase
     return out
 
 
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index (Hubert & Arabie) of two labelings of the same N points (any integer
+    labels; −1 counts as one more cluster): 1 = the same partition, ≈0 = chance agreement."""
+    a, b = np.asarray(a).ravel(), np.asarray(b).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"labelings differ in length: {a.shape} vs {b.shape}")
+    _, ia = np.unique(a, return_inverse=True)
+    _, ib = np.unique(b, return_inverse=True)
+    table = np.bincount(ia.ravel() * (ib.max(initial=0) + 1) + ib.ravel()).astype(np.float64)
+    comb = lambda x: float(np.sum(x * (x - 1) / 2))  # noqa: E731
+    s_ij, s_a, s_b = comb(table), comb(np.bincount(ia.ravel()).astype(float)), comb(np.bincount(ib.ravel()).astype(float))
+    total = len(a) * (len(a) - 1) / 2
+    expected = s_a * s_b / total if total else 0.0
+    denom = 0.5 * (s_a + s_b) - expected
+    return 1.0 if denom == 0 else float((s_ij - expected) / denom)
+
+
 class PointsEvaluator:
     """detectron2-style accumulator of per-video point-cloud scores (one cloud per video).
 

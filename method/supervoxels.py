@@ -3,7 +3,11 @@
 Steps, with PCL's parameter names:
 
 1. Voxelise the cloud at ``voxel_resolution`` (voxel = mean of its points, colours and, when
-   given, normals); voxels are adjacent when they are among each other's 26 neighbours.
+   given, normals); voxels are adjacent when they are among each other's 26 neighbours. The voxel
+   and seed grids are anchored on the cloud (:func:`grid_origin`), not at the world origin: a
+   cloud extracted from a TSDF of the same voxel size has most coordinates on one lattice, and a
+   grid whose faces pass through that lattice splits surfaces at random (``floor`` of values on a
+   face); anchored, the lattice falls on voxel centres and the partition moves with the cloud.
 2. Voxel normals: the averaged input normals if given, else the PCA normal of the voxel
    centroids in the voxel's two-ring neighbourhood, flipped towards ``viewpoint`` (PCL: origin).
 3. Seeds: one per occupied cell of a ``seed_resolution`` grid (the voxel nearest to the cell
@@ -58,6 +62,20 @@ def pack_keys(keys: np.ndarray) -> np.ndarray:
     if (k < 0).any() or (k >= (1 << _BITS)).any():
         raise ValueError("point cloud extent too large for the voxel resolution (2^21 voxels per axis)")
     return (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
+
+
+def grid_origin(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Origin (3, m) of the voxel grid for ``points`` (N×3, m): per axis, the circular mean phase of
+    the coordinates modulo ``voxel``, shifted by half a voxel.
+
+    Coordinates sharing a lattice of spacing ``voxel`` (a TSDF surface: two of each point's three
+    coordinates on the TSDF's voxel lattice) dominate the circular mean, so they land on voxel
+    centres, never on faces. The origin is translation-covariant: shifting the cloud by t shifts it
+    by t modulo ``voxel``, so the partition of the points does not change (up to rounding).
+    """
+    ang = np.asarray(points, np.float64) * (2.0 * np.pi / voxel)
+    phase = np.arctan2(np.sin(ang).sum(0), np.cos(ang).sum(0)) / (2.0 * np.pi)  # in (−½, ½] voxels
+    return (phase + 0.5) * voxel
 
 
 def voxel_adjacency(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -204,8 +222,13 @@ def _expand(xyz, nrm, rgb, indptr, indices, seeds, n_iter, wc, ws, wn, seed_res)
 def supervoxel_clustering(points: np.ndarray, normals: np.ndarray | None, colors: np.ndarray | None,
                           voxel_resolution: float = 0.0075, seed_resolution: float = 0.03,
                           color_importance: float = 0.0, spatial_importance: float = 1.0,
-                          normal_importance: float = 4.0, viewpoint=(0.0, 0.0, 0.0)) -> Supervoxels:
-    """VCCS over-segmentation of an N×3 cloud (m); ``normals`` N×3 oriented, ``colors`` N×3 0–255 or None."""
+                          normal_importance: float = 4.0, viewpoint=(0.0, 0.0, 0.0),
+                          anchor: str = "cloud") -> Supervoxels:
+    """VCCS over-segmentation of an N×3 cloud (m); ``normals`` N×3 oriented, ``colors`` N×3 0–255 or None.
+
+    ``anchor``: "cloud" (grids at :func:`grid_origin`) or "world" (grids at the world origin, the
+    former behaviour, kept for the consistency benchmark and its test).
+    """
     points = np.asarray(points, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise ValueError(f"points must be a non-empty N×3 array, got shape {points.shape}")
@@ -213,7 +236,10 @@ def supervoxel_clustering(points: np.ndarray, normals: np.ndarray | None, colors
         raise ValueError("points contain NaN or inf")
     if seed_resolution <= voxel_resolution:
         raise ValueError(f"seed_resolution {seed_resolution} must exceed voxel_resolution {voxel_resolution}")
-    keys_all = np.floor(points / voxel_resolution).astype(np.int64)
+    if anchor not in ("cloud", "world"):
+        raise ValueError(f"anchor must be 'cloud' or 'world', got {anchor!r}")
+    origin = grid_origin(points, voxel_resolution) if anchor == "cloud" else np.zeros(3)
+    keys_all = np.floor((points - origin) / voxel_resolution).astype(np.int64)
     _, first, point_voxel = np.unique(pack_keys(keys_all), return_index=True, return_inverse=True)
     keys = keys_all[first]
     point_voxel = point_voxel.reshape(-1)
@@ -237,8 +263,11 @@ def supervoxel_clustering(points: np.ndarray, normals: np.ndarray | None, colors
 
     # seeds: voxel nearest to each occupied seed-grid cell centre, filtered by local voxel density
     tree = cKDTree(xyz)
-    cells = np.unique(np.floor(xyz / seed_resolution).astype(np.int64), axis=0)
-    _, seeds = tree.query((cells + 0.5) * seed_resolution)
+    # seed grid: faces on voxel faces, anchored modulo the seed size by the same circular mean
+    seed_origin = origin if anchor == "world" else \
+        origin + voxel_resolution * np.round((grid_origin(points, seed_resolution) - origin) / voxel_resolution)
+    cells = np.unique(np.floor((xyz - seed_origin) / seed_resolution).astype(np.int64), axis=0)
+    _, seeds = tree.query(seed_origin + (cells + 0.5) * seed_resolution)
     seeds = np.unique(seeds)
     radius = 0.5 * seed_resolution
     min_points = 0.05 * radius * radius * np.pi / (voxel_resolution * voxel_resolution)
