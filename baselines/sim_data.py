@@ -46,7 +46,8 @@ def object_names(ds: Dataset) -> set[str]:
 
 
 def open_disjoint_train_data(path: str, test_root: Path, method: str) -> Dataset:
-    """The training dataset at ``path``, checked to exist and to share no object with the test dataset."""
+    """The training dataset at ``path``, checked to exist and to share no object with the test dataset
+    (``test_root``: the folder of the videos ``fit`` was given, which holds the test dataset's info)."""
     if not path:
         raise DatasetError(f"{method} needs train_data: a dataset generated with an object pool disjoint from the "
                            f"test data (generate_scenes --object-pool ...), given with --set train_data=PATH")
@@ -55,7 +56,7 @@ def open_disjoint_train_data(path: str, test_root: Path, method: str) -> Dataset
     except DatasetError as e:
         raise DatasetError(f"{method} train_data is not usable: {e}") from None
     test = Dataset(test_root)
-    if train.root.resolve() == test.root.resolve():
+    if train.root.resolve() == test.root.resolve() or train.info == test.info:  # (the evaluator may give a copy)
         raise DatasetError(f"{method} train_data {path} is the test dataset itself; give a disjoint-object dataset")
     shared = sorted(object_names(train) & object_names(test))
     if shared:

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from selfseg.baselines.sim_data import GTFrames, xyz_map
+from selfseg.baselines.sim_data import GTFrames, open_disjoint_train_data, xyz_map
 from selfseg.baselines.uois import RefineNet, UoisConfig, centre_targets, cluster_votes, perturb_mask, rrn_batch
-from selfseg.dataset import Dataset
+from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.cli import main as evaluate
 from selfseg.fileio import write_json
 from selfseg.generate.cli import main as generate_scenes
@@ -76,18 +76,29 @@ def fake_dataset(root: Path, objects: list[str]) -> Path:
     return root
 
 
-@pytest.mark.parametrize("method", ["uois-sim", "sdmaskrcnn-sim"])
-def test_missing_or_overlapping_training_data_is_refused(analytic_dataset, tmp_path, capsys, method):
-    test_objects = sorted(o["name"] for o in Dataset(analytic_dataset).info.get("objects", []))
-    cases = [([], "needs train_data"), (["--set", f"train_data={tmp_path / 'nowhere'}"], "not found"),
-             (["--set", f"train_data={analytic_dataset}"], "test dataset itself")]
-    overlap = fake_dataset(tmp_path / "overlap", ["cube", test_objects[0]])
-    cases.append((["--set", f"train_data={overlap}"], "shares objects with the test dataset"))
-    for extra, words in cases:
-        assert evaluate(["--method", method, "--data", str(analytic_dataset), "--out", str(tmp_path / "r"),
-                         "--folds", "0", "--quiet", *extra]) == 2
-        err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and words in err, err
+@pytest.mark.parametrize("method, overlapping", [("uois-sim", False), ("sdmaskrcnn-sim", True)])
+def test_missing_or_overlapping_training_data_is_a_one_line_error(analytic_dataset, tmp_path, capsys, method,
+                                                                  overlapping):
+    extra = []
+    if overlapping:
+        objects = sorted(o["name"] for o in Dataset(analytic_dataset).info["objects"])
+        extra = ["--set", f"train_data={fake_dataset(tmp_path / 'overlap', ['cube', objects[0]])}"]
+    assert evaluate(["--method", method, "--data", str(analytic_dataset), "--out", str(tmp_path / "r"),
+                     "--folds", "0", "--quiet", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    words = "shares objects with the test dataset" if overlapping else "needs train_data"
+    assert len(err.splitlines()) == 1 and words in err, err
+
+
+def test_training_data_checks(analytic_dataset, tmp_path):
+    objects = sorted(o["name"] for o in Dataset(analytic_dataset).info["objects"])
+    for path, words in [("", "needs train_data"), (str(tmp_path / "nowhere"), "not found"),
+                        (str(analytic_dataset), "test dataset itself"),
+                        (str(fake_dataset(tmp_path / "overlap", ["cube", objects[1]])), f"objects .*: {objects[1]};")]:
+        with pytest.raises(DatasetError, match=words):
+            open_disjoint_train_data(path, analytic_dataset, "uois-sim")
+    ok = fake_dataset(tmp_path / "other", ["cube", "egg"])
+    assert open_disjoint_train_data(str(ok), analytic_dataset, "uois-sim").root == ok
 
 
 @pytest.fixture(scope="module")
