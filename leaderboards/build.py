@@ -11,6 +11,8 @@ Output depends only on the result files and the predictions, so a rebuild is byt
 
 Rows: Table I lists every 2-D run except ablation variants; Table III lists runs named ``ours``
 and ``ours-<variant>`` (``evaluate --name ours-v2``); Table II lists runs with ``task = "3d"``.
+Runs with the estimated foreground (``evaluate --foreground plane``) are named ``<method>@fg-plane``,
+so they are rows of their own beside the ground-truth-foreground rows.
 The paper's numbers (``shared/paper.md``) are shown in their own rows, marked *paper*; they come
 from other data (the paper's real and synthetic sets), so they are context, not a comparison.
 """
@@ -124,6 +126,8 @@ def runs_table(groups: dict) -> list[str]:
         opt = f"stride {opts.get('frame_stride', '—')}, limit {opts.get('limit') or '—'}"
         if opts.get("poses_given"):
             opt += ", GT poses"
+        if opts.get("foreground", "gt") != "gt":  # evaluate --foreground plane: its own row (run name @fg-plane)
+            opt += f", {opts['foreground']} foreground"
         lines.append(f"| {name} | {task} | {r['method']} | `{r['config_hash']}` | `{r['dataset']['content_hash']}` | "
                      f"`{commit}` | {opt} |")
     return lines

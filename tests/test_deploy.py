@@ -127,3 +127,24 @@ def test_plane_foreground_and_preview_on_a_tiny_frame():
     inst = lv.inst(f)
     p = preview(lv.rgb(f), inst)
     assert p.shape == lv.rgb(f).shape and np.array_equal(p[inst == 0], lv.rgb(f)[inst == 0])
+
+
+def test_evaluate_with_plane_foreground_gives_methods_the_estimated_mask(tmp_path):
+    from selfseg.eval.protocol import estimated_foreground
+
+    out = tmp_path / "r"
+    assert evaluate(["--method", "one-segment", "--data", str(TINY), "--foreground", "plane", "--folds", "0",
+                     "--limit", "1", "--out", str(out), "--quiet"]) == 0
+    rec = json.loads((out / "scores/tiny/one-segment@fg-plane/fold0.json").read_text())
+    assert rec["options"]["foreground"] == "plane" and rec["name"] == "one-segment@fg-plane"
+    ds = Dataset(TINY)
+    for vid in rec["test_videos"]:
+        lv = ds.labeled(vid)
+        pred = read_inst(out / f"predictions/one-segment@fg-plane/tiny/{vid}/000000.png")
+        est = estimated_foreground(lv, 0)
+        assert np.array_equal(pred > 0, est) and not np.array_equal(est, lv.inst(0) > 0)
+    # scored against the ground truth: missed foreground lowers recall below the GT-foreground run's
+    assert evaluate(["--method", "one-segment", "--data", str(TINY), "--folds", "0", "--limit", "1",
+                     "--out", str(out), "--quiet"]) == 0
+    gt = json.loads((out / "scores/tiny/one-segment/fold0.json").read_text())
+    assert rec["metrics"]["IoU"] < gt["metrics"]["IoU"]
