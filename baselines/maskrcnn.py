@@ -309,11 +309,11 @@ class SDMaskRCNNSim(Method):
         key = {"config": {k: v for k, v in result_key(cfg).items() if k not in TEST_TIME_FIELDS + ("train_data",)},
                "train_data": self.train_data["content_hash"]}
         out = shared_train_dir(self.workdir, self.name, key)
+        begin_training(cfg.train)  # seeds the initial weights: build the network after it
         self.model = MaskRCNN(cfg.net)
         saved = finished(out / WEIGHTS, key)
         if saved is None:
             frames = GTFrames(ds, cfg.frame_stride)
-            begin_training(cfg.train)
             opt = torch.optim.AdamW(self.model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
 
             def step_loss(step: int) -> torch.Tensor:

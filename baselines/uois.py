@@ -261,17 +261,18 @@ class UoisSim(Method):
         base = {k: v for k, v in result_key(cfg).items() if k not in TEST_TIME_FIELDS + ("train_data",)}
         out = shared_train_dir(self.workdir, self.name, {"config": base, "train_data": self.train_data["content_hash"]})
         frames = None
-        self.dsn, self.rrn = EmbeddingNet(cfg.dsn_net), RefineNet(cfg.rrn_width)
-        for name, net, sched, loss_fn in (
-                ("dsn", self.dsn, cfg.dsn_train, lambda step: dsn_loss(
+        for name, make, sched, loss_fn in (
+                ("dsn", lambda: EmbeddingNet(cfg.dsn_net), cfg.dsn_train, lambda step: dsn_loss(
                     self.dsn, cfg, frames.batch(cfg.dsn_train.seed, step, cfg.dsn_train.batch_size))),
-                ("rrn", self.rrn, cfg.rrn_train, lambda step: rrn_loss(self.rrn, frames, cfg, step))):
+                ("rrn", lambda: RefineNet(cfg.rrn_width), cfg.rrn_train, lambda step: rrn_loss(self.rrn, frames, cfg, step))):
             key = {"phase": name, "config": base, "train_data": self.train_data["content_hash"]}
             phase_dir = out / name
+            begin_training(sched)  # seeds the initial weights: build the network after it
+            net = make()
+            setattr(self, name, net)
             saved = finished(phase_dir / WEIGHTS, key)
             if saved is None:
                 frames = frames if frames is not None else GTFrames(ds, cfg.frame_stride)
-                begin_training(sched)
                 opt = torch.optim.AdamW(net.parameters(), lr=sched.lr, weight_decay=sched.weight_decay)
                 train_loop(phase_dir, key, {name: net}, opt, sched, loss_fn, {}, desc=f"{self.name} {name}")
                 save_final(phase_dir / WEIGHTS, key, net=net.state_dict())

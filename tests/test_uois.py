@@ -134,3 +134,33 @@ def test_uois_end_to_end_on_tiny(tiny, tiny_disjoint, tmp_path):
     assert rec["train_data"]["root"] == str(tiny_disjoint.resolve())
     assert m["n_frames"] > 0
     assert m["IoU"] > 0.15  # one-segment scores ~.1 on tiny
+
+
+def test_fit_is_deterministic_whatever_the_global_rng_and_reuses_trained_weights(analytic_dataset, tmp_path):
+    from types import SimpleNamespace
+
+    from selfseg.baselines.maskrcnn import MaskRCNNNetConfig, SDMaskRCNNConfig, SDMaskRCNNSim
+    from selfseg.baselines.sim_data import SimSchedule
+    from selfseg.baselines.uois import UoisSim
+    from selfseg.method.network import NetConfig
+
+    test_videos = [SimpleNamespace(root=fake_dataset(tmp_path / "test", ["cube", "egg"]))]
+    short = SimSchedule(steps=2, batch_size=2, threads=1)
+    configs = {UoisSim: UoisConfig(train_data=str(analytic_dataset), dsn_train=short, rrn_train=short, rrn_width=4,
+                                   rrn_size=32, dsn_net=NetConfig(width=8, aspp_channels=8, low_level_channels=8,
+                                                                  decoder_channels=8, embed_dim=4)),
+               SDMaskRCNNSim: SDMaskRCNNConfig(train_data=str(analytic_dataset), train=short, net=MaskRCNNNetConfig(
+                   width=8, fpn_channels=8, box_fc=16, mask_channels=8))}
+    for cls, cfg in configs.items():
+        states = []
+        for run in range(2):
+            torch.manual_seed(run)  # the global RNG differs between the runs
+            m = cls(cfg, tmp_path / f"{cls.name}{run}" / "fold0")
+            m.fit(test_videos)
+            states.append({k: v.clone() for k, v in (m.dsn if cls is UoisSim else m.model).state_dict().items()})
+            assert m.train_data["content_hash"] == Dataset(analytic_dataset).content_hash()
+        assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+        again = cls(cfg, tmp_path / f"{cls.name}0" / "fold1")  # another fold of the same run: trained weights reused
+        again.fit(test_videos)
+        net = again.dsn if cls is UoisSim else again.model
+        assert all(torch.equal(states[0][k], v) for k, v in net.state_dict().items())
