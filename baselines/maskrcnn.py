@@ -84,7 +84,8 @@ class SDMaskRCNNConfig:
 
 
 def depth_input(depth_m: np.ndarray, scale_m: float) -> np.ndarray:
-    """Depth (m, H×W, 0 = none) → 3×H×W float32: median-centred, divided by ``scale_m``, triplicated; 0 where missing."""
+    """Depth (m, H×W, 0 = none) → 3×H×W float32: median-centred, divided by ``scale_m``, triplicated;
+    0 where missing."""
     valid = depth_m > 0
     d = np.where(valid, (depth_m - (np.median(depth_m[valid]) if valid.any() else 0.0)) / scale_m, 0.0)
     return np.repeat(d[None].astype(np.float32), 3, 0)
@@ -191,7 +192,8 @@ def _proposals(anchors: torch.Tensor, obj: torch.Tensor, deltas: torch.Tensor, h
 
 
 def _sample(labels: torch.Tensor, n: int, pos_fraction: float, gen: torch.Generator) -> torch.Tensor:
-    """Indices of at most ``n`` labelled items (1 = positive, 0 = negative, −1 = ignore), ≤ pos_fraction positive."""
+    """Indices of at most ``n`` labelled items (1 = positive, 0 = negative, −1 = ignore), at most
+    ``pos_fraction`` of them positive."""
     pos, neg = torch.nonzero(labels == 1).flatten(), torch.nonzero(labels == 0).flatten()
     n_pos = min(len(pos), int(n * pos_fraction))
     n_neg = min(len(neg), n - n_pos)
@@ -260,7 +262,8 @@ def detection_loss(model: MaskRCNN, cfg: SDMaskRCNNConfig, frames: list[tuple[np
 
 
 @torch.inference_mode()
-def detect(model: MaskRCNN, cfg: SDMaskRCNNConfig, depth_m: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def detect(model: MaskRCNN, cfg: SDMaskRCNNConfig, depth_m: np.ndarray
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One frame → (boxes D×4, scores D, mask probabilities D×H×W), highest score first."""
     H, W = depth_m.shape
     feats = model.features(torch.from_numpy(depth_input(depth_m, cfg.depth_scale_m))[None])

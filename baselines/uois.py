@@ -65,13 +65,15 @@ class UoisConfig:
 
     def __post_init__(self):
         if self.dsn_net.embed_dim != 4:
-            raise ValueError(f"dsn_net.embed_dim must be 4 (foreground logit + 3-D offset), got {self.dsn_net.embed_dim}")
+            raise ValueError(f"dsn_net.embed_dim must be 4 (foreground logit + 3-D offset), "
+                             f"got {self.dsn_net.embed_dim}")
         if min(self.xyz_scale_m, self.sigma_m, self.merge_m) <= 0 or self.offset_weight < 0:
             raise ValueError("xyz_scale_m, sigma_m and merge_m must be > 0 and offset_weight ≥ 0")
         if min(self.frame_stride, self.n_seeds, self.max_points, self.meanshift_iters, self.rrn_width) < 1:
             raise ValueError("frame_stride, n_seeds, max_points, meanshift_iters and rrn_width must be ≥ 1")
         if self.rrn_size < 16 or self.rrn_size % 8 or self.rrn_pad < 0:
-            raise ValueError(f"rrn_size must be a multiple of 8, ≥ 16, and rrn_pad ≥ 0; got {self.rrn_size}, {self.rrn_pad}")
+            raise ValueError(f"rrn_size must be a multiple of 8, ≥ 16, and rrn_pad ≥ 0; "
+                             f"got {self.rrn_size}, {self.rrn_pad}")
 
 
 # ---- DSN ------------------------------------------------------------------------------------------
@@ -264,7 +266,8 @@ class UoisSim(Method):
         for name, make, sched, loss_fn in (
                 ("dsn", lambda: EmbeddingNet(cfg.dsn_net), cfg.dsn_train, lambda step: dsn_loss(
                     self.dsn, cfg, frames.batch(cfg.dsn_train.seed, step, cfg.dsn_train.batch_size))),
-                ("rrn", lambda: RefineNet(cfg.rrn_width), cfg.rrn_train, lambda step: rrn_loss(self.rrn, frames, cfg, step))):
+                ("rrn", lambda: RefineNet(cfg.rrn_width), cfg.rrn_train,
+                 lambda step: rrn_loss(self.rrn, frames, cfg, step))):
             key = {"phase": name, "config": base, "train_data": self.train_data["content_hash"]}
             phase_dir = out / name
             begin_training(sched)  # seeds the initial weights: build the network after it

@@ -29,7 +29,8 @@ def slow_roi_align(feats: np.ndarray, roi: np.ndarray, p: int, scale: float, s: 
     for c in range(feats.shape[1]):
         for i in range(p):
             for j in range(p):
-                vals = [bilinear_zero_padded(feats[int(b), c], x0 + (j + (q + 0.5) / s) * bw, y0 + (i + (r + 0.5) / s) * bh)
+                vals = [bilinear_zero_padded(feats[int(b), c], x0 + (j + (q + 0.5) / s) * bw,
+                                             y0 + (i + (r + 0.5) / s) * bh)
                         for r in range(s) for q in range(s)]
                 out[c, i, j] = np.mean(vals)
     return out
