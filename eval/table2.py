@@ -36,13 +36,15 @@ from tqdm import tqdm
 
 from selfseg.config import ConfigError, load_config
 from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
-                             invert_T)
+                             invert_T, transform_points)
 from selfseg.eval.aggregate import fmt
-from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator
+from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances
+from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, provenance, write_result
-from selfseg.fileio import FileFormatError
+from selfseg.fileio import FileFormatError, read_json
 from selfseg.method.overseg import oversegment
 from selfseg.method.pipeline import Ours, OursConfig
+from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
 from selfseg.method.recon_stage import ReconStage, load_recon
 from selfseg.method.segment_graph import SegmentGraph
 
@@ -59,6 +61,8 @@ class SceneSegmentations:
     video_id: str
     recon: ReconStage
     labels: dict[str, np.ndarray]
+    graph: SegmentGraph | None = None  # the over-segmentation (with the ours-matching row)
+    pseudo_dir: Path | None = None  # the pseudo stage folder (with the ours-matching row)
 
 
 def row_config(config: OursConfig, row: str) -> OursConfig:
@@ -123,7 +127,47 @@ def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROW
             seconds["pseudo_s"] = time.perf_counter() - t0
             for s in scenes:
                 s.labels["ours-matching"] = np.load(pseudo / "labels" / f"{s.video_id}.npy")
+                s.graph = SegmentGraph.load(cache.path("overseg", s.video_id) / "segments.npz")
+                s.pseudo_dir = pseudo
     return scenes, seconds
+
+
+def matching_record(dataset: Dataset, scenes: list[SceneSegmentations], gt_inst: dict[str, np.ndarray]) -> dict:
+    """The matching step's diagnostics (``diagnostics.json``) with its ground-truth scores: merge
+    precision/recall and the φ1 cosine of same- vs different-object segment pairs across scenes
+    (:mod:`selfseg.eval.merges`). ``gt_inst``: GT instance per reconstructed point, per video."""
+    diag = read_json(scenes[0].pseudo_dir / DIAGNOSTICS_JSON)
+    seg_inst, inst_obj, seg_object, edges, feats = {}, {}, {}, {}, {}
+    for s in scenes:
+        n = len(s.graph.sizes)
+        seg = np.asarray(s.graph.labels)
+        seg_inst[s.video_id] = segment_instances(seg, gt_inst[s.video_id], n)
+        inst_obj[s.video_id] = dataset.labeled(s.video_id).instance_to_object()
+        obj = np.full(n, -1, np.int64)
+        obj[seg[seg >= 0]] = s.labels["ours-matching"][seg >= 0]
+        seg_object[s.video_id] = obj
+        edges[s.video_id] = np.asarray(s.graph.edges)
+        feats[s.video_id] = np.load(s.pseudo_dir / "features" / f"{s.video_id}.npy")
+    return {**diag, "gt": {**merge_scores(diag, seg_inst, inst_obj, seg_object, edges),
+                           "cosine": cosine_by_object(feats, seg_inst, inst_obj)}}
+
+
+def format_matching(m: dict) -> str:
+    """Lines summing up the matching record of the ``ours-matching`` row."""
+    f = lambda x: "–" if x is None else f"{x:.3f}"  # noqa: E731
+    mt, pr, gt = m["matching"], m["pruning"], m["gt"]
+    w, a, c = gt["within"], gt["across"], gt["cosine"]
+    cos = lambda d: f"median {f(d['median'])} (q25 {f(d['q25'])}, q75 {f(d['q75'])}, max {f(d['max'])}, n {d['n']})"  # noqa: E731
+    return "\n".join([
+        f"matching: {m['totals']['segments']} segments, {m['totals']['components']} components; component pairs "
+        f"{mt.get('component_pairs', '–')}, pre-filtered {mt.get('prefiltered', '–')}, solved {mt.get('solved', '–')}, "
+        f"non-empty {mt.get('nonempty', '–')}; merges {m['totals']['merges']} ({m['totals']['merged_segments']} segments)",
+        f"pruning: matches {pr['matches_by_outcome']}; node pairs {pr['node_pairs_by_reason']}",
+        f"merges within scenes: P {f(w['precision'])} ({w['correct']}/{w['merges']}), R {f(w['recall'])} "
+        f"({w['merged']}/{w['same_instance_adjacent']} adjacent same-instance pairs)",
+        f"matched pairs across scenes: P {f(a['precision'])} ({a['correct']}/{a['pairs']}), R {f(a['recall'])} "
+        f"({a['matched_segments']}/{a['reappearing_segments']} segments of reappearing objects)",
+        f"φ1 cosine across scenes: same object {cos(c['same_object'])}; different {cos(c['different_object'])}"])
 
 
 def _row_seconds(row: str, seconds: dict[str, float]) -> float:
@@ -174,6 +218,11 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
             "timings": {"fit_s": round(fit_s, 4), "ms_per_frame": round(1000 * fit_s / max(n_frames, 1), 4),
                         "score_s": round(score_s, 4), "steps_s": {k: round(v, 4) for k, v in seconds.items()}},
         }
+        if row == "ours-matching":
+            gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
+                                                   s.video_id, max_dist_m, None if models is None else models[s.video_id])
+                       for s in scenes}
+            record["matching"] = matching_record(dataset, scenes, gt_inst)
         write_result(out, record, ev.records)
         records.append(record)
     return records
@@ -218,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evaluate3d: error: {e}", file=sys.stderr)
         return 2
     print(format_table(records))
+    for r in records:
+        if "matching" in r:
+            print(format_matching(r["matching"]))
     print("results: " + ", ".join(str(args.out / SCORES_JSON.format(dataset=dataset.name, name=r["name"], fold=FOLD))
                                   for r in records))
     return 0

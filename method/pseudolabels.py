@@ -20,10 +20,12 @@ smallest segment id of each group.
 ``matches.json`` in ``out_dir`` records, for every non-empty match: the node and edge maps, J
 and T1, the registration (transform, fitness, RMSE) and per node pair precision, recall, the
 decision and its reason; plus matching statistics and each scene's merged groups.
+``diagnostics.json`` (:func:`diagnostics`) sums up what the step did, stage by stage.
 """
 from __future__ import annotations
 
 import concurrent.futures as cf
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Sequence
@@ -37,6 +39,9 @@ from selfseg.method.matching import MatchConfig, SceneGraph, cosine_distance, ma
 from selfseg.method.pruning import MatchDecision, NodeDecision, PruneConfig, prune_matches, register_clouds
 from selfseg.method.registration import precision_recall
 from selfseg.method.segment_graph import SegmentGraph
+
+
+DIAGNOSTICS_JSON = "diagnostics.json"
 
 
 @dataclass
@@ -104,6 +109,60 @@ def merge_segments(n_segments: Sequence[int], decisions: Sequence[MatchDecision]
         _, obj = np.unique(roots, return_inverse=True)  # roots are group minima: ordered by smallest id
         out.append(obj.astype(np.int32))
     return out
+
+
+def diagnostics(scene_ids: Sequence[str], graphs: Sequence[SceneGraph], stats: dict,
+                decisions: Sequence[MatchDecision], objects: Sequence[np.ndarray]) -> dict:
+    """What matching and pruning did (``diagnostics.json``).
+
+    - ``scenes``: per scene id: segments, components, objects after merging, merged_segments (segments
+      in a group of two or more) and merges (segments − objects: the union operations that joined two groups);
+    - ``matching``: component pairs, pre-filtered (optimum provably empty), solved, non-empty matches
+      (:func:`selfseg.method.matching.match_stats`; empty for V4);
+    - ``pruning``: decisions (non-empty matches, or V4 registered component pairs); ``matches_by_outcome``:
+      each decision's fate by criterion ("cost_above_T1" = criterion 1, "no_mapped_edge",
+      "registration_failed" / "precision_recall" (some pair below P/R) = criterion 2, "isolation" =
+      criterion 3, "merged" = at least one accepted edge, "no_accepted_edge" = pairs accepted but no edge
+      with both ends accepted); ``node_pairs_by_reason``: every matched node pair's reason;
+    - ``merges``: accepted cross-scene edges, within-scene merge edges {scene: [[i, j], ...]} and the
+      cross-scene node pairs that carried them [[scene_a, i, scene_b, k], ...] (segment ids of each scene).
+    """
+    outcome: Counter = Counter()
+    reasons: Counter = Counter()
+    within: dict[str, set] = {sid: set() for sid in scene_ids}
+    across: set = set()
+    for d in decisions:
+        reasons.update(p.reason for p in d.pairs)
+        edges = d.accepted_edges()
+        bad = [p.reason for p in d.pairs if not p.accepted]
+        if edges:
+            outcome["merged"] += 1
+        elif bad:
+            order = ("cost_above_T1", "no_mapped_edge", "registration_failed", "precision_recall", "isolation")
+            outcome[min(bad, key=order.index)] += 1
+        else:
+            outcome["no_accepted_edge"] += 1
+        a, b = scene_ids[d.src_scene], scene_ids[d.tgt_scene]
+        for (i, j), (k, l) in edges:
+            within[a].add((min(i, j), max(i, j)))
+            within[b].add((min(k, l), max(k, l)))
+            across.update({(a, i, b, k), (a, j, b, l)})
+    scenes = {}
+    for sid, g, obj in zip(scene_ids, graphs, objects):
+        sizes = np.bincount(obj, minlength=obj.max(initial=-1) + 1)
+        scenes[sid] = {"segments": len(obj), "components": len(g.components), "objects": int(len(sizes)),
+                       "merged_segments": int(sizes[sizes > 1].sum()), "merges": int(len(obj) - len(sizes))}
+    return {
+        "scenes": scenes,
+        "totals": {k: sum(s[k] for s in scenes.values()) for k in ("segments", "components", "merged_segments",
+                                                                    "merges")},
+        "matching": {k: stats[k] for k in ("component_pairs", "prefiltered", "solved", "nonempty") if k in stats},
+        "pruning": {"decisions": len(decisions), "matches_by_outcome": dict(sorted(outcome.items())),
+                    "node_pairs_by_reason": dict(sorted(reasons.items()))},
+        "merges": {"accepted_edges": sum(len(d.accepted_edges()) for d in decisions),
+                   "within": {sid: sorted(map(list, e)) for sid, e in within.items()},
+                   "across": sorted(map(list, across))},
+    }
 
 
 def _v4_component_pair(sa: int, ca: int, sb: int, cb: int, src_nodes, tgt_nodes, clouds_a, clouds_b,
@@ -221,4 +280,5 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         "merged_groups": groups,
         "matches": [d.to_json(ids) for d in decisions],
     })
+    write_json(out_dir / DIAGNOSTICS_JSON, {"mode": cfg.mode, **diagnostics(ids, graphs, stats, decisions, objects)})
     return labels

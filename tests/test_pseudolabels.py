@@ -92,6 +92,16 @@ def test_pseudo_labels_merge_the_object_only(scenes, mode, tmp_path):
     # the object's two edges, merged in both directions (V4 registers each component pair once)
     assert record["mode"] == mode and record["n_merged_edges"] >= (2 if mode.startswith("v4") else 4)
     assert all(p["reason"] for m in record["matches"] for p in m["pairs"])
+    diag = read_json(tmp_path / "diagnostics.json")
+    # each scene: 5 segments, the object's 3 merged by 2 unions; A: object + touching ball, lone box
+    assert diag["scenes"]["A"] == {"segments": 5, "components": 2, "objects": 3, "merged_segments": 3, "merges": 2}
+    assert diag["scenes"]["B"] == {"segments": 5, "components": 3, "objects": 3, "merged_segments": 3, "merges": 2}
+    object_pairs = {("A", int(orders[0][p]), "B", int(orders[1][p])) for p in range(3)}
+    across = {tuple(x) if x[0] == "A" else (x[2], x[3], x[0], x[1]) for x in diag["merges"]["across"]}
+    assert across == object_pairs  # the object's parts, each matched to itself
+    if mode == "ours":  # the object merged both ways; the lure pruned by registration, its lone pair unregistered
+        assert diag["matching"]["nonempty"] == diag["pruning"]["decisions"] == 4
+        assert diag["pruning"]["matches_by_outcome"] == {"merged": 2, "no_mapped_edge": 1, "precision_recall": 1}
     if mode == "ours":  # the lure (a rod with the box part's feature) was matched, then pruned
         lure = int(orders[1][4])
         pairs = [(m, p) for m in record["matches"] for p in m["pairs"]]
