@@ -240,15 +240,17 @@ def detection_loss(model: MaskRCNN, cfg: SDMaskRCNNConfig, frames: list[tuple[np
         sel = _sample(rlab, cfg.roi_batch, 0.25, gen)
         rois.append(torch.cat([torch.full((len(sel), 1), float(b)), cand[sel]], 1))
         roi_lab.append(rlab[sel])
+        masks = torch.zeros(len(sel), 28, 28, dtype=torch.bool)  # targets of the positive RoIs only
         if len(gt):
             roi_tgt.append(encode_boxes(cand[sel], gt[rmatch[sel]], BOX_WEIGHTS))
+            p = torch.nonzero(rlab[sel] == 1).flatten()
             inst = torch.from_numpy(f[3])
-            gt_masks = torch.stack([(inst == int(k)).float() for k in ids])[rmatch[sel]]
-            one = torch.cat([torch.arange(len(sel), dtype=torch.float32)[:, None], cand[sel]], 1)
-            roi_masks.append(roi_align(gt_masks[:, None], one, 28, 1.0, 2)[:, 0] >= 0.5)
+            gt_masks = torch.stack([(inst == int(k)).float() for k in ids])[rmatch[sel[p]]]
+            one = torch.cat([torch.arange(len(p), dtype=torch.float32)[:, None], cand[sel[p]]], 1)
+            masks[p] = roi_align(gt_masks[:, None], one, 28, 1.0, 2)[:, 0] >= 0.5
         else:
             roi_tgt.append(torch.zeros(len(sel), 4))
-            roi_masks.append(torch.zeros(len(sel), 28, 28, dtype=torch.bool))
+        roi_masks.append(masks)
     rois, roi_lab, roi_tgt, roi_masks = torch.cat(rois), torch.cat(roi_lab), torch.cat(roi_tgt), torch.cat(roi_masks)
     h = model.box_head(model.pool(feats, rois, 7))
     loss = torch.stack(rpn_cls).mean() + (torch.stack(rpn_reg).sum() / len(frames) if rpn_reg else 0.0)
