@@ -1,7 +1,7 @@
 """``segment`` speed at 320×240 on the CPU: a saved model segmenting a folder of frames, end to end.
 
     .venv/bin/python bench/bench_segment.py [--data /work/data/tiny] [--work /tmp/bench_segment]
-                                            [--frames 20] [--threads 2] [--out bench/results/segment.json]
+                                            [--frames 20] [--threads 1] [--out bench/results/segment.json]
 
 Trains a model with ``train`` (``ours-v2``, the methods' default "fast" network at the default
 training scale of 320 px, a 10-step φ schedule: speed does not depend on training length),
@@ -63,7 +63,7 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=Path("/work/data/tiny"))
     p.add_argument("--work", type=Path, default=Path("/tmp/bench_segment"))
     p.add_argument("--frames", type=int, default=20)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=1)  # two threads cost ~5x the CPU on the shared cores
     p.add_argument("--out", type=Path, default=Path("bench/results/segment.json"))
     a = p.parse_args()
     torch.set_num_threads(a.threads)
