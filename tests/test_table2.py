@@ -9,7 +9,7 @@ from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.points import evaluate_points
 from selfseg.eval.protocol import FRAMES_JSONL, SCORES_JSON, WORK_DIR
-from selfseg.eval.table2 import FOLD, ROWS, alignment, main, run_table2, segment_scenes
+from selfseg.eval.table2 import FOLD, ROWS, alignment, format_matching, main, run_table2, segment_scenes
 from selfseg.fileio import read_json
 from selfseg.leaderboards.build import main as build_leaderboards
 from selfseg.method.pipeline import OursConfig
@@ -48,6 +48,18 @@ def test_table2_rows_alignment_and_leaderboard(tmp_path):
     assert lccp["IoU"] > 0.8 and lccp["P"] > 0.9  # boxes and a cylinder: convex, so LCCP finds them
     assert symseg["IoU"] > 0.8 and matching["IoU"] > 0.8
     assert records[0]["pose_drift"]["drift_pos_mean_m"] < 0.02  # 20 frames over 30°: little drift
+    # the matching record: the pseudo stage's diagnostics plus its ground-truth scores
+    assert "matching" not in records[0] and "matching" not in records[1]
+    m = records[2]["matching"]
+    assert sorted(m["scenes"]) == ds.video_ids and m["totals"]["segments"] == sum(
+        s["segments"] for s in m["scenes"].values())
+    c = m["gt"]["cosine"]
+    # objects 1, 2, 3 reappear (1 in three scenes, 2 and 3 in two): at least 3 + 1 + 1 same-object pairs
+    assert c["same_object"]["n"] >= 5 and c["different_object"]["n"] > 0
+    for part in ("within", "across"):
+        p = m["gt"][part]["precision"]
+        assert p is None or 0.0 <= p <= 1.0
+    assert "merges within scenes" in format_matching(m)
 
     # the alignment matters: scoring the first-camera-frame cloud as if it were the dataset's frame fails
     workdir = out / WORK_DIR.format(name="ours", dataset=ds.name, fold=FOLD)
