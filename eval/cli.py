@@ -11,6 +11,7 @@ message naming the file or option and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from selfseg.baselines.registry import UnknownMethodError, get_method_class, met
 from selfseg.config import ConfigError, load_config
 from selfseg.dataset import Dataset, DatasetError, GroundTruthAccessError
 from selfseg.eval.aggregate import fmt, summarize_folds
-from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, run_fold
+from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
 from selfseg.fileio import FileFormatError
 
 TABLE_KEYS = ("P", "R", "IoU", "overlap_F", "boundary_F", "F75")
@@ -97,9 +98,14 @@ def run(args: argparse.Namespace) -> int:
     if not dataset.has_labels():
         raise DatasetError(f"{dataset.root}: has no ground truth (no scene_gt.json / mask_inst/), so evaluate cannot "
                            "score it; use train and segment for unlabeled recordings")
-    records = [run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet) for k in options.folds]
+    records = []
+    for k in options.folds:  # a fold finished by an earlier run with the same keys is reused (resume)
+        record = finished_fold(cls, config, dataset, k, args.out, options)
+        if record is not None and not args.quiet:
+            print(f"fold {k}: reusing the finished result of an identical run", file=sys.stderr)
+        records.append(record or run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet))
     print(format_table(options.name or args.method, records))
-    print(f"results: {args.out / 'scores' / dataset.name / (options.name or args.method)}")
+    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or args.method)}")
     return 0
 
 
@@ -107,10 +113,19 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return run(args)
+    except KeyboardInterrupt:
+        print("evaluate: interrupted; finished folds are kept, run the same command to resume", file=sys.stderr)
+        return 130
     except GroundTruthAccessError as e:
-        print(f"evaluate: error: method {args.method!r} tried to read ground truth: {e}", file=sys.stderr)
+        print(f"evaluate: error: method {args.method!r} tried to read ground truth ({args.out / 'rejected'}): {e}",
+              file=sys.stderr)
     except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError) as e:
         print(f"evaluate: error: {e}", file=sys.stderr)
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        print(f"evaluate: error: {e.filename or args.out}: no space left; finished folds are kept", file=sys.stderr)
+        return 1
     return 2
 
 

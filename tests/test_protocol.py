@@ -12,7 +12,7 @@ from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import (MASK_INST, SCENE_GT, Dataset, DatasetError, GroundTruthAccessError, LabeledVideo,
                              PosesNotGiven, read_inst, write_inst)
 from selfseg.eval.metrics import METRIC_KEYS
-from selfseg.eval.protocol import EvalOptions, fold_split, make_folds, run_fold, select_test_frames
+from selfseg.eval.protocol import WORK_DIR, EvalOptions, fold_split, make_folds, run_fold, select_test_frames
 
 FAST = EvalOptions(frame_stride=2, n_boot=100)
 
@@ -47,30 +47,35 @@ def test_frame_selection():
 
 
 class Recorder(Method):
-    """Records what it was given; segments with one segment."""
+    """Records what it was given in its workdir (it runs in its own process); segments with one segment."""
 
     name = "recorder"
-    seen: dict = {}
+
+    def _note(self, key, values):
+        path = self.workdir / "seen.json"
+        seen = json.loads(path.read_text()) if path.is_file() else {}
+        seen[key] = sorted(set(seen.get(key, [])) | set(values))
+        path.write_text(json.dumps(seen))
 
     def fit(self, train_videos):
-        Recorder.seen["fit"] = [v.video_id for v in train_videos]
-        Recorder.seen["types"] = {type(v).__name__ for v in train_videos}
+        self._note("fit", [v.video_id for v in train_videos])
+        self._note("types", [type(v).__name__ for v in train_videos])
         with pytest.raises(PosesNotGiven):
             train_videos[0].T_world_cam(0)
 
     def segment(self, video, frame_id, fg_mask):
-        Recorder.seen.setdefault("test", set()).add(video.video_id)
+        self._note("test", [video.video_id])
         return fg_mask.astype(np.uint16)
 
 
 def test_fit_sees_only_training_videos_without_labels(analytic_dataset, tmp_path):
     ds = Dataset(analytic_dataset)
     for k in range(3):
-        Recorder.seen = {}
         rec = run_fold(Recorder, None, ds, k, tmp_path, FAST, progress=False)
-        assert set(Recorder.seen["fit"]) == set(rec["train_videos"]) and Recorder.seen["types"] == {"Video"}
-        assert Recorder.seen["test"] == set(rec["test_videos"])
-        assert not Recorder.seen["test"] & set(Recorder.seen["fit"])
+        seen = json.loads((tmp_path / WORK_DIR.format(name="recorder", dataset=ds.name, fold=k) / "seen.json").read_text())
+        assert set(seen["fit"]) == set(rec["train_videos"]) and seen["types"] == ["Video"]
+        assert set(seen["test"]) == set(rec["test_videos"])
+        assert not set(seen["test"]) & set(seen["fit"])
 
 
 class CheatOpen(Method):
