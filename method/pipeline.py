@@ -45,7 +45,7 @@ from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
 from selfseg.method.train import FrameLabelSource, TrainConfig, load_embedding_net, train_embedding
 from selfseg.stages import StageCache
 
-STAGE_VERSION = 2  # bump when a stage's output format or algorithm changes (2: supervoxel grids anchored on the cloud)
+STAGE_VERSION = 3  # bump when a stage's output format or algorithm changes (2: cloud-anchored supervoxel grids; 3: diagnostics.json)
 
 
 @dataclass
