@@ -31,7 +31,7 @@ from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.metrics import METRIC_KEYS, segment_metrics
 from selfseg.eval.points import POINT_KEYS
 from selfseg.eval.protocol import PREDICTIONS_DIR, SCHEMA_VERSION
-from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, read_json
+from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, hash_json, read_json
 
 BEGIN = "<!-- BEGIN GENERATED (selfseg.leaderboards.build; edits inside are overwritten) -->"
 END = "<!-- END GENERATED -->"
@@ -63,14 +63,31 @@ PAPER_TABLE3 = {
 }
 
 
+def _run_key(rec: dict) -> str:
+    """What folds must share to be averaged into one row: config, dataset content and options (but the fold list)."""
+    options = {k: v for k, v in rec.get("options", {}).items() if k != "folds"}
+    return hash_json([rec["config_hash"], rec["dataset"]["content_hash"], options], n=8)
+
+
 def load_results(results: Path) -> dict[str, dict[tuple[str, str], list[dict]]]:
-    """{dataset: {(task, name): [fold records sorted by fold]}} from ``results/scores``."""
+    """{dataset folder key: {(task, name): [fold records sorted by fold]}} from ``results/scores``.
+
+    Datasets are kept apart by their folder under ``scores/`` (the name, or name-hash when two datasets
+    share a name). Folds of one run name whose config, dataset content or options differ are never
+    averaged: each such run becomes its own row, ``name [run key]``."""
     out: dict[str, dict[tuple[str, str], list[dict]]] = defaultdict(lambda: defaultdict(list))
     for path in sorted((Path(results) / "scores").glob("*/*/fold*.json")):
         rec = read_json(path)
         if rec.get("schema_version") != SCHEMA_VERSION:
             raise FileFormatError(f"{path}: schema_version {rec.get('schema_version')!r}, expected {SCHEMA_VERSION}")
-        out[rec["dataset"]["name"]][rec.get("task", "2d"), rec["name"]].append(rec)
+        out[path.parts[-3]][rec.get("task", "2d"), rec["name"]].append(rec)
+    for groups in out.values():
+        for (task, name), recs in list(groups.items()):
+            keys = {_run_key(r) for r in recs}
+            if len(keys) > 1:
+                del groups[task, name]
+                for r in recs:
+                    groups[task, f"{name} [{_run_key(r)}]"].append(r)
     return {d: {k: sorted(v, key=lambda r: r["fold"]) for k, v in sorted(g.items())} for d, g in sorted(out.items())}
 
 
@@ -188,7 +205,7 @@ def _tile(img: np.ndarray, label: str) -> np.ndarray:
 
 
 def _prediction_dir(results: Path, rec: dict) -> Path:
-    local = results / PREDICTIONS_DIR.format(name=rec["name"], dataset=rec["dataset"]["name"])
+    local = results / PREDICTIONS_DIR.format(name=rec["name"], dataset=rec["dataset"].get("key", rec["dataset"]["name"]))
     return local if local.is_dir() else Path(rec.get("predictions_dir", local))
 
 

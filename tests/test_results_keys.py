@@ -1,0 +1,121 @@
+"""Results never mix: two datasets of one name stay apart, partial re-runs with other settings get their
+own leaderboard row, stale predictions are cleared, finished folds are reused, and Ctrl-C (a real
+SIGINT) exits 130 with one line and resumes to the same result."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from selfseg.baselines.base import Method
+from selfseg.dataset import Dataset, write_inst
+from selfseg.eval.cli import main
+from selfseg.eval.protocol import EvalOptions, MethodOutputError, fold_split, run_fold
+from selfseg.fileio import read_json, write_json
+from selfseg.leaderboards.build import load_results
+
+QUICK = ["--frame-stride", "3", "--quiet"]
+
+
+def evaluate(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def twin(analytic_dataset, tmp_path):
+    """A second dataset with the same name and different content (another seed, so other folds too)."""
+    root = tmp_path / "twin" / "analytic"
+    shutil.copytree(analytic_dataset, root)
+    info = read_json(root / "dataset_info.json")
+    write_json(root / "dataset_info.json", {**info, "seed": info.get("seed", 0) + 1})
+    return root
+
+
+def test_same_name_datasets_and_partial_reruns_stay_apart(analytic_dataset, twin, tmp_path, capsys):
+    out = tmp_path / "res"
+    assert evaluate(capsys, "--method", "fg-components", "--data", analytic_dataset, "--out", out, *QUICK)[0] == 0
+    first = {p.name: p.read_bytes() for p in (out / "scores/analytic/fg-components").iterdir()}
+    code, stdout, err = evaluate(capsys, "--method", "fg-components", "--data", twin, "--out", out, *QUICK)
+    assert code == 0, err
+    twin_key = next(p.name for p in (out / "scores").iterdir() if p.name != "analytic")
+    assert twin_key.startswith("analytic-") and f"scores/{twin_key}/" in stdout.replace(os.sep, "/")
+    assert {p.name: p.read_bytes() for p in (out / "scores/analytic/fg-components").iterdir()} == first  # untouched
+    # a partial re-run with another setting under the same run name: its own row, never averaged in
+    code, _, err = evaluate(capsys, "--method", "depth-clustering", "--data", analytic_dataset, "--out", out, *QUICK)
+    assert code == 0, err
+    code, _, err = evaluate(capsys, "--method", "depth-clustering", "--data", analytic_dataset, "--out", out,
+                            "--folds", "1", "--set", "distance_m=0.05", *QUICK)
+    assert code == 0, err
+    groups = load_results(out)
+    assert set(groups) == {"analytic", twin_key}
+    names = sorted(name for _, name in groups["analytic"])
+    rows = [n for n in names if n.startswith("depth-clustering")]
+    assert len(rows) == 2 and all(" [" in n for n in rows)  # two runs, each with its key
+    folds = sorted(len(groups["analytic"]["2d", n]) for n in rows)
+    assert folds == [1, 2]  # fold 1 of the first run was replaced, folds 0 and 2 kept
+    for n in rows:
+        assert len({r["config_hash"] for r in groups["analytic"]["2d", n]}) == 1
+
+
+def test_stale_predictions_are_cleared_and_finished_folds_reused(analytic_dataset, tmp_path, capsys):
+    out = tmp_path / "res"
+    ds = Dataset(analytic_dataset)
+    vid = fold_split(ds, 0)[1][0]
+    stale = out / f"predictions/fg-components/analytic/{vid}/000999.png"
+    write_inst(stale, np.ones((ds.height, ds.width), np.uint16))
+    assert evaluate(capsys, "--method", "fg-components", "--data", analytic_dataset, "--out", out, "--folds", "0",
+                    *QUICK)[0] == 0
+    assert not stale.exists() and sorted(p.name for p in stale.parent.iterdir()) == ["000000.png", "000003.png"]
+    before = (out / "scores/analytic/fg-components/fold0.json").read_bytes()
+    code, _, err = evaluate(capsys, "--method", "fg-components", "--data", analytic_dataset, "--out", out,
+                                "--folds", "0", "--frame-stride", "3")
+    assert code == 0 and "reusing" in err
+    assert (out / "scores/analytic/fg-components/fold0.json").read_bytes() == before
+
+
+class HugeIds(Method):
+    name = "huge-ids"
+
+    def segment(self, video, frame_id, fg_mask):
+        return fg_mask.astype(np.int64) * 70000
+
+
+def test_ids_out_of_range_are_one_line_errors(analytic_dataset, tmp_path):
+    with pytest.raises(MethodOutputError, match=r"\[0, 65535\].*70000"):
+        run_fold(HugeIds, None, Dataset(analytic_dataset), 0, tmp_path, EvalOptions(frame_stride=3, n_boot=10),
+                 progress=False)
+
+
+@pytest.mark.slow
+def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset, tmp_path):
+    evaluate_bin = [sys.executable, "-m", "selfseg.eval.cli", "--method", "depth-clustering", "--data",
+                    str(analytic_dataset), "--frame-stride", "1", "--quiet"]
+    out = tmp_path / "interrupted"
+    proc = subprocess.Popen(evaluate_bin + ["--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    fold0 = out / "scores/analytic/depth-clustering/fold0.json"
+    deadline = time.monotonic() + 120
+    while not fold0.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert len(err.strip().splitlines()) == 1 and "interrupted" in err
+    assert fold0.exists() and not (out / "scores/analytic/depth-clustering/fold2.json").exists()
+    resumed = subprocess.run(evaluate_bin + ["--out", str(out)], capture_output=True, text=True, timeout=300)
+    fresh = subprocess.run(evaluate_bin + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True,
+                           timeout=300)
+    assert resumed.returncode == 0 and fresh.returncode == 0, resumed.stderr + fresh.stderr
+    for k in range(3):
+        a, b = (json.loads((root / f"scores/analytic/depth-clustering/fold{k}.json").read_text())
+                for root in (out, tmp_path / "fresh"))
+        assert a["metrics"] == b["metrics"] and a["per_video"] == b["per_video"]
