@@ -34,15 +34,17 @@ def test_train_and_segment_reproduce_evaluate(tmp_path, capsys, monkeypatch):
     sets = SHORT + ["--set", f"stage_dir={stages}"]
     assert evaluate(["--method", "ours-v2", "--data", str(TINY), *sets, "--folds", "0", "--limit", "2",
                      "--out", str(tmp_path / "r"), "--quiet"]) == 0
-    # φ is trained again by `train` (recon and over-segments stay cached): training is deterministic
+    # `train` on the unlabeled view evaluate gave the method (same frames; recon and over-segments stay
+    # cached, φ is trained again: training is deterministic)
+    (view,) = (tmp_path / "r/work/_views").glob("*/tiny")
     shutil.rmtree(stages / "phi1")
     train_ids, test_ids = fold_split(ds, 0)
     model = tmp_path / "model"
-    assert train_main(["--method", "ours-v2", "--data", str(TINY), *sets, "--videos", ",".join(train_ids),
+    assert train_main(["--method", "ours-v2", "--data", str(view), *sets, "--videos", ",".join(train_ids),
                        "--out", str(model)]) == 0
     meta = json.loads((model / MODEL_JSON).read_text())
     assert meta["method"] == "ours-v2" and meta["training_data"]["videos"] == train_ids
-    assert meta["training_data"]["content_hash"] == ds.content_hash() and (model / "weights.pt").is_file()
+    assert meta["training_data"]["content_hash"] == Dataset(view).content_hash() and (model / "weights.pt").is_file()
     pred_dir = tmp_path / "r/predictions/ours-v2/tiny"
     compared = 0
     for vid in test_ids:
@@ -76,7 +78,7 @@ def test_train_and_segment_reproduce_evaluate(tmp_path, capsys, monkeypatch):
         assert not (seg[~fg] > 0).any()  # instances only inside the estimated foreground
         assert cv2.imread(str(tmp_path / f"segs/preview/{f:06d}.png")).shape == (ds.height, ds.width, 3)
     # the full method (matching, pseudo-labels, φ2) trains and segments from the same cached stages
-    assert train_main(["--method", "ours", "--data", str(TINY), *sets, "--videos", ",".join(train_ids),
+    assert train_main(["--method", "ours", "--data", str(view), *sets, "--videos", ",".join(train_ids),
                        "--out", str(tmp_path / "ours")]) == 0
     out = tmp_path / "ours.png"
     assert segment_main(["--model", str(tmp_path / "ours"), "--rgb", str(rgb_dir / f"{v.frame_ids[0]:06d}.png"),
