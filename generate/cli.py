@@ -20,7 +20,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, from_dict, to_dict
-from selfseg.dataset import DATASET_INFO, MODELS_DIR, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info
+from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_INFO, RGB, SCENE_CAMERA, SCENE_GT,
+                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, PRESETS, GenerateConfig, preset_config
@@ -98,10 +99,38 @@ def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
     return sorted(foreign)
 
 
+def remove_dataset(out: Path) -> list[str]:
+    """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, models/obj_*.ply
+    and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON records,
+    plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
+    video_entries = {Path(t.format(video_id="0", frame_id=0)).parts[2] for t in
+                     (RGB, DEPTH, MASK_INST, SCENE_CAMERA, SCENE_GT, SCENE_INFO)}
+    owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MODELS_INFO]
+    owned += sorted((out / MODELS_DIR).glob("obj_[0-9][0-9][0-9][0-9][0-9][0-9].ply"))
+    videos = out / VIDEOS_DIR
+    owned += sorted(videos.glob(".*.partial")) if videos.is_dir() else []
+    video_dirs = sorted(p for p in videos.iterdir() if re.fullmatch(r"\d{6}", p.name)) if videos.is_dir() else []
+    owned += [v / e for v in video_dirs for e in sorted(video_entries)]
+    removed = []
+    for path in owned:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        else:
+            continue
+        removed.append(str(path.relative_to(out)))
+    for folder in [*video_dirs, videos, out / MODELS_DIR]:  # only if nothing of the user's is inside
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    return removed
+
+
 def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
     """Check ``out`` is absent, empty, or this same dataset; with ``overwrite`` replace a selfseg dataset.
 
-    Raises GenerateError before anything is written or deleted if the folder cannot be used.
+    Raises GenerateError before anything is written or deleted if the folder cannot be used. ``overwrite``
+    deletes only what the dataset format owns (:func:`remove_dataset`) and says how much it removed.
     """
     if out.exists() and not out.is_dir():
         raise GenerateError(f"{out}: exists and is not a folder")
@@ -112,7 +141,11 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
         if stored is None:
             raise GenerateError(f"{out}: not a selfseg dataset (no {DATASET_INFO}); refusing to delete it even with "
                                 "--overwrite. Choose another --out or empty the folder yourself")
-        shutil.rmtree(out)
+        removed = remove_dataset(out)
+        kept = sorted(p.name for p in out.iterdir())
+        print(f"generate_scenes: --overwrite removed {len(removed)} dataset entries from {out} "
+              f"({', '.join(removed[:4])}{', …' if len(removed) > 4 else ''})"
+              + (f"; kept files it does not own: {', '.join(kept[:5])}" if kept else ""), file=sys.stderr)
         return
     if stored is None:
         raise GenerateError(f"{out}: folder is not empty and is not a selfseg dataset; choose another --out")
@@ -157,6 +190,8 @@ def validate(args: argparse.Namespace) -> tuple[GenerateConfig, list]:
     if args.workers < 1:
         raise GenerateError(f"--workers must be at least 1, got {args.workers}")
     cfg = config_from_args(args)
+    if not 0 <= cfg.seed < 2**32:
+        raise GenerateError(f"--seed must be an integer in [0, 2^32), got {cfg.seed}")
     step = orbit_step_deg(cfg.orbit, cfg.frames) * cfg.frame_step
     if step > 2.0:
         print(f"generate_scenes: warning: the camera turns {step:.1f}° between rendered frames; "
