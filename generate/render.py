@@ -21,8 +21,10 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # before cv2 reads its f
 import contextlib
 import math
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -267,6 +269,7 @@ class BlenderScene:
 
         # compositor for the ground-truth pass: depth and flat colour to 32-bit EXR in a temporary folder
         self._tmp = Path(tempfile.mkdtemp(prefix="selfseg_render_"))
+        self._sigints: list[int] = []  # SIGINTs noted while rendering (see __enter__)
         tree = bpy.data.node_groups.new("gt_outputs", "CompositorNodeTree")
         sc.compositing_node_group = tree
         rl = tree.nodes.new("CompositorNodeRLayers")
@@ -323,10 +326,17 @@ class BlenderScene:
 
     def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb uint8 H×W×3, depth float32 m (0 = background), inst uint16) seen from ``T_world_cam``."""
+        self._raise_if_interrupted()
         self.set_camera(T_world_cam)
         rgb = self.render_rgb()
         depth, inst = self.render_ground_truth()
+        self._raise_if_interrupted()
         return rgb, depth, inst
+
+    def _raise_if_interrupted(self) -> None:
+        if self._sigints:
+            self._sigints.clear()
+            raise KeyboardInterrupt
 
     def render_rgb(self) -> np.ndarray:
         """The image pass, uint8 H×W×3 RGB."""
@@ -394,7 +404,18 @@ class BlenderScene:
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def __enter__(self) -> "BlenderScene":
+        """Within the block Ctrl-C is noted and raised between frames: Blender runs Python callbacks while it
+        renders and frees engines, and a KeyboardInterrupt raised in them is printed and swallowed."""
+        self._sigints.clear()
+        self._previous_sigint = None
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._previous_sigint = signal.signal(signal.SIGINT, lambda signum, frame: self._sigints.append(signum))
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
         self.close()
+        if self._previous_sigint is not None:
+            signal.signal(signal.SIGINT, self._previous_sigint)
+        if exc_type is None:
+            self._raise_if_interrupted()

@@ -2,6 +2,13 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
 
 from selfseg.generate.cli import PROGRESS_FILE, main, prepare_output
 from selfseg.generate.presets import preset_config
@@ -31,3 +38,27 @@ def test_negative_seed_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and "seed" in err and "-1" in err
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_cycles_exits_130_and_resumes_identically(tmp_path):
+    cmd = [sys.executable, "-m", "selfseg.generate.cli", "--preset", "tiny", "--renderer", "cycles", "--scenes", "3",
+           "--frames", "6", "--quiet"]
+    out = tmp_path / "interrupted"
+    proc = subprocess.Popen(cmd + ["--out", str(out)], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    deadline = time.monotonic() + 240
+    while not list(out.glob("videos/.*.partial/rgb/*.png")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    t0 = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C, mid-scene, Cycles rendering
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and time.monotonic() - t0 < 10, err
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("pybullet build time")]  # pybullet's banner
+    assert len(lines) == 1 and "interrupted" in lines[0]
+    resumed = subprocess.run(cmd + ["--out", str(out)], capture_output=True, text=True, timeout=300)
+    fresh = subprocess.run(cmd + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0 and fresh.returncode == 0, resumed.stderr + fresh.stderr
+    files = sorted(p.relative_to(out) for p in out.rglob("videos/*/*/*.png"))
+    assert len(files) == 3 * 6 * 3
+    assert all((out / f).read_bytes() == (tmp_path / "fresh" / f).read_bytes() for f in files)
