@@ -27,6 +27,11 @@ from selfseg.generate.textures import atlas, make_texture, seed_from_name
 SECTIONS = 48  # angular resolution of round parts
 TEXTURE_SIZE = (256, 256)  # (height, width) of one part's texture
 MESH_EXTENSIONS = (".obj", ".ply", ".glb", ".gltf")
+# Limits on user meshes, checked when they are loaded (before physics or rendering):
+MAX_FACES = 200_000  # more: decimate first (e.g. Blender's Decimate modifier, ratio MAX_FACES / faces)
+MAX_EXTENT_M = 0.5  # largest side of a table-top object that the scenes' camera orbit keeps in view
+MIN_EXTENT_M = 0.01  # smaller objects cover a few pixels at most
+MIN_THICKNESS_M = 0.001  # a mesh thinner than this along every direction of one axis is flat (no volume)
 
 
 class ObjectLibraryError(ValueError):
@@ -473,6 +478,32 @@ def _texture_of(mesh: trimesh.Trimesh, name: str) -> tuple[np.ndarray, np.ndarra
     return uv, tex.reshape(side, side, 3)
 
 
+def check_mesh_limits(path: Path, vertices_m: np.ndarray, n_faces: int) -> None:
+    """Refuse, with one line naming the file, a mesh the generator cannot use: too many faces, non-finite,
+    larger than :data:`MAX_EXTENT_M` (centimetre or millimetre units named as such), smaller than
+    :data:`MIN_EXTENT_M`, or flat (thinner than :data:`MIN_THICKNESS_M` along its thinnest principal axis)."""
+    if n_faces > MAX_FACES:
+        raise ObjectLibraryError(f"{path}: {n_faces} faces, more than the limit of {MAX_FACES}; decimate it first "
+                                 f"(e.g. Blender's Decimate modifier with ratio {MAX_FACES / n_faces:.3f})")
+    if not np.isfinite(vertices_m).all():
+        raise ObjectLibraryError(f"{path}: mesh has non-finite vertices")
+    ext = float(np.max(vertices_m.max(0) - vertices_m.min(0)))
+    if ext > MAX_EXTENT_M:
+        unit = " (is it in millimetres? scale it by 0.001)" if ext > 50 else \
+            " (is it in centimetres? scale it by 0.01)" if ext > 5 else ""
+        raise ObjectLibraryError(f"{path}: mesh is {ext:.3g} units across; meshes must be in metres and at most "
+                                 f"{MAX_EXTENT_M} m across to fit the camera's view{unit}")
+    if ext < MIN_EXTENT_M:
+        raise ObjectLibraryError(f"{path}: mesh is {ext * 1000:.3g} mm across, under {MIN_EXTENT_M * 1000:.0f} mm: "
+                                 "too small to be seen by the camera (meshes must be in metres)")
+    centred = vertices_m - vertices_m.mean(0)
+    axis = np.linalg.eigh(centred.T @ centred)[1][:, 0]  # thinnest principal direction
+    thickness = float(np.ptp(centred @ axis))
+    if thickness < MIN_THICKNESS_M:
+        raise ObjectLibraryError(f"{path}: mesh is flat ({thickness * 1000:.3g} mm thick; its convex hull has no "
+                                 "volume); objects need a closed, solid shape")
+
+
 def load_user_object(path: str | os.PathLike, name: str | None = None) -> ObjectModel:
     """One user mesh file (OBJ with MTL and texture, PLY or GLB; metres) as an :class:`ObjectModel`.
 
@@ -488,12 +519,7 @@ def load_user_object(path: str | os.PathLike, name: str | None = None) -> Object
         raise ObjectLibraryError(f"{path}: unreadable mesh ({type(e).__name__}: {e})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ObjectLibraryError(f"{path}: unreadable mesh (no triangles found)")
-    ext = float(np.max(mesh.extents))
-    if not np.isfinite(mesh.vertices).all() or ext <= 0:
-        raise ObjectLibraryError(f"{path}: mesh has non-finite or degenerate vertices")
-    if ext > 2.0:
-        raise ObjectLibraryError(f"{path}: mesh is {ext:.1f} units across; meshes must be in metres "
-                                 "(is it in millimetres?)")
+    check_mesh_limits(path, np.asarray(mesh.vertices, dtype=np.float64), len(mesh.faces))
     uv, tex = _texture_of(mesh, name)
     merged = trimesh.Trimesh(mesh.vertices, mesh.faces)  # processed copy: seams merged
     convex = merged.is_watertight and merged.volume > 0.9 * merged.convex_hull.volume
@@ -528,11 +554,15 @@ def load_user_objects(folder: str | os.PathLike) -> list[ObjectModel]:
 
 
 # ---- writing models into a dataset ---------------------------------------------------------
-def _diameter(points: np.ndarray) -> float:
-    """Largest distance between two points (via the convex hull's vertices)."""
-    hull = trimesh.convex.convex_hull(points).vertices if len(points) > 4 else points
-    d2 = ((hull[:, None, :] - hull[None, :, :]) ** 2).sum(-1)
-    return float(np.sqrt(d2.max()))
+def _diameter(points: np.ndarray, chunk: int = 1024) -> float:
+    """Largest distance between two points: the convex hull first (O(n log n)), then its vertices compared
+    in chunks (memory O(chunk × hull vertices))."""
+    hull = trimesh.convex.convex_hull(points).vertices if len(points) > 4 else np.asarray(points, dtype=np.float64)
+    best = 0.0
+    for i in range(0, len(hull), chunk):
+        d2 = ((hull[i:i + chunk, None, :] - hull[None, :, :]) ** 2).sum(-1)
+        best = max(best, float(d2.max()))
+    return float(np.sqrt(best))
 
 
 def _ply_bytes(vertices_mm: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> bytes:

@@ -9,6 +9,7 @@ import sys
 import time
 
 import pytest
+import trimesh
 
 from selfseg.generate.cli import PROGRESS_FILE, main, prepare_output
 from selfseg.generate.presets import preset_config
@@ -62,3 +63,33 @@ def test_ctrl_c_during_cycles_exits_130_and_resumes_identically(tmp_path):
     files = sorted(p.relative_to(out) for p in out.rglob("videos/*/*/*.png"))
     assert len(files) == 3 * 6 * 3
     assert all((out / f).read_bytes() == (tmp_path / "fresh" / f).read_bytes() for f in files)
+
+
+def _sheet():
+    return trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], [[0, 1, 2], [0, 2, 3]])
+
+
+BAD_MESHES = {  # name: (mesh, words the one-line error must contain)
+    "flat_sheet": (_sheet, "flat"),
+    "dense": (lambda: trimesh.creation.icosphere(subdivisions=7, radius=0.05), "faces"),
+    "box_1p9m": (lambda: trimesh.creation.box(extents=(1.9, 0.3, 0.3)), "at most 0.5 m"),
+    "box_1p5units": (lambda: trimesh.creation.box(extents=(1.5, 1.0, 1.0)), "at most 0.5 m"),
+    "box_cm": (lambda: trimesh.creation.box(extents=(10.0, 8.0, 6.0)), "centimetres"),
+    "box_mm": (lambda: trimesh.creation.box(extents=(100.0, 80.0, 60.0)), "millimetres"),
+    "box_half_mm": (lambda: trimesh.creation.box(extents=(0.0005, 0.0005, 0.0005)), "too small"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_MESHES))
+def test_bad_mesh_is_one_line_rc2_within_10_s(tmp_path, capsys, name):
+    make, words = BAD_MESHES[name]
+    objects = tmp_path / "objects"
+    objects.mkdir()
+    make().export(objects / f"{name}.ply")
+    t0 = time.monotonic()
+    code = main(["--preset", "tiny", "--objects", str(objects), "--objects-per-scene", "1",
+                 "--out", str(tmp_path / "d"), "--quiet"])
+    err = capsys.readouterr().err
+    assert time.monotonic() - t0 < 10
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"{name}.ply" in err and words in err, err
+    assert not (tmp_path / "d").exists()
