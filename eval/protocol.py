@@ -204,6 +204,12 @@ def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_al
     method (import-time code runs guarded too) and serve ``fit`` / ``segment`` requests from the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the evaluator stops this process
     if not gt_allowed:
+        import platform
+        from multiprocessing import resource_tracker
+
+        import numpy.testing  # noqa: F401  (libraries start `lscpu` / `uname -p` once: before programs are refused)
+        platform.processor()
+        resource_tracker.ensure_running()  # process pools need it; it runs no method code
         sandbox_ground_truth_guard(identities)
     method = view = None
     while True:
@@ -233,6 +239,8 @@ def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_al
                 reply = None
             conn.send(("ok", reply, time.perf_counter() - t0, list(ground_truth_attempts)))
         except BaseException as e:  # noqa: BLE001 (reported to the parent, which raises)
+            if isinstance(e, GroundTruthAccessError) and not ground_truth_attempts:  # refused in a forked worker
+                ground_truth_attempts.append(str(e))
             try:
                 error = pickle.dumps(e) if isinstance(e, _INPUT_ERRORS) else None
             except Exception:  # noqa: BLE001 (an unpicklable error is reported by its traceback)

@@ -435,8 +435,9 @@ _guard_inodes: set[tuple[int, int]] = set()  # (st_dev, st_ino) of dataset folde
 _hook_installed = False
 # Every refused access in this process, caught by the method or not (the sandbox reports them).
 ground_truth_attempts: list[str] = []
-_PROCESS_EVENTS = ("subprocess.Popen", "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.fork",
-                   "os.forkpty", "pty.spawn")
+# Starting programs is refused in a sandbox; os.fork is allowed: a forked worker inherits this guard.
+_PROCESS_EVENTS = ("subprocess.Popen", "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.forkpty",
+                   "pty.spawn")
 _PATH_EVENTS = ("open", "os.listdir", "os.scandir", "os.link", "os.symlink", "os.rename", "shutil.copyfile",
                 "shutil.copytree", "os.chdir")
 _sandboxed = False
@@ -498,7 +499,7 @@ def _audit(event: str, args: tuple) -> None:
         if event in ("os.link", "os.symlink", "os.rename", "shutil.copyfile", "shutil.copytree") and len(args) > 1:
             _check_path(args[1])
     elif _sandboxed and event in _PROCESS_EVENTS:
-        _refuse(f"{event} {args[:2]!r} (methods may not start processes)")
+        _refuse(f"{event} {args[:2]!r} (methods may not start programs)")
     elif _sandboxed and event == "ctypes.dlsym" and len(args) > 1 and args[1] in _CTYPES_DENIED:
         _refuse(f"ctypes lookup of {args[1]!r} (methods may not open files or start programs through ctypes)")
     elif _sandboxed and event == "ctypes.call_function" and len(args) > 1:
@@ -605,13 +606,15 @@ class _GuardOpen3d(importlib.abc.MetaPathFinder):
 
 
 def _refuse_fork_exec(*args, **kwargs):
-    _refuse("process start (_posixsubprocess.fork_exec: subprocess, multiprocessing; methods may not start processes)")
+    _refuse("program start (_posixsubprocess.fork_exec: subprocess, multiprocessing's spawn or forkserver; methods "
+            "may not start programs)")
 
 
 def sandbox_ground_truth_guard(identities: list[tuple[int, int]]) -> None:
     """For the rest of this process (a method's sandbox): refuse ground truth in the datasets with these
-    :func:`dataset_identity` values, by any path, any process start, and ctypes calls naming ground
-    truth; every attempt is recorded in :data:`ground_truth_attempts`."""
+    :func:`dataset_identity` values, by any path, starting programs (fresh interpreters would run
+    unguarded; forked workers inherit the guard) and ctypes lookups of libc's file and exec functions;
+    every attempt is recorded in :data:`ground_truth_attempts`."""
     global _sandboxed
     _install_hook()
     _guard_inodes.update(identities)

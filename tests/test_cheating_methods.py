@@ -180,7 +180,17 @@ class ViewCheat(Cheat):
         os.listdir(Path(train_videos[0].root) / "videos" / VIDEO / "mask_inst")
 
 
-CHEATS = [ThreadCheat, CatchCheat, ImportTimeCheat, InitCheat, EarlyImreadCheat, VideoCaptureCheat, EmptyCaptureCheat,
+class ForkedWorkerCheat(Cheat):
+    """Reads in a forked pool worker: the worker inherits the guard."""
+
+    name = "cheat-forked-worker"
+
+    def cheat(self):
+        with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
+            pool.submit(read_inst, _mask()).result()
+
+
+CHEATS = [ForkedWorkerCheat, ThreadCheat, CatchCheat, ImportTimeCheat, InitCheat, EarlyImreadCheat, VideoCaptureCheat, EmptyCaptureCheat,
           Open3dCheat, ProcRootCheat, DirFdCheat, SubprocessCheat, SpawnCheat, CtypesCheat, ViewCheat]
 
 
@@ -244,3 +254,25 @@ def test_poses_only_with_poses_given(analytic_dataset, tmp_path, poses_given):
     run_fold(PosesPeek, None, ds, 0, tmp_path, options, progress=False)
     t = np.array(json.loads((tmp_path / WORK_DIR.format(name="poses-peek", dataset=ds.name, fold=0) / "t.json").read_text()))
     assert (np.abs(t).max() > 0) == poses_given  # the real orbit is never at the origin
+
+
+def _square(x):
+    return x * x
+
+
+class PoolUser(Method):
+    """A method with a process pool of forked workers (as ``ours`` matches scene pairs): allowed."""
+
+    name = "pool-user"
+
+    def fit(self, train_videos):
+        with concurrent.futures.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+            assert list(pool.map(_square, [1, 2, 3])) == [1, 4, 9]
+
+    def segment(self, video, frame_id, fg_mask):
+        return fg_mask.astype(np.uint16)
+
+
+def test_forked_worker_pools_still_work(analytic_dataset, tmp_path):
+    rec = run_fold(PoolUser, None, Dataset(analytic_dataset), 0, tmp_path, FAST, progress=False)
+    assert rec["metrics"]["n_frames"] > 0 and rec["ground_truth_attempts"] == []
