@@ -210,6 +210,7 @@ def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_al
         import numpy.testing  # noqa: F401  (libraries start `lscpu` / `uname -p` once: before programs are refused)
         platform.processor()
         resource_tracker.ensure_running()  # process pools need it; it runs no method code
+        multiprocessing.set_start_method("fork", force=True)  # Linux's default (a spawned child inherits 'spawn')
         sandbox_ground_truth_guard(identities)
     method = view = None
     while True:

@@ -261,12 +261,12 @@ def _square(x):
 
 
 class PoolUser(Method):
-    """A method with a process pool of forked workers (as ``ours`` matches scene pairs): allowed."""
+    """A method with a default process pool (forked workers, as ``ours`` matches scene pairs): allowed."""
 
     name = "pool-user"
 
     def fit(self, train_videos):
-        with concurrent.futures.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        with concurrent.futures.ProcessPoolExecutor(2) as pool:
             assert list(pool.map(_square, [1, 2, 3])) == [1, 4, 9]
 
     def segment(self, video, frame_id, fg_mask):
