@@ -32,6 +32,7 @@ import pickle
 import shutil
 import signal
 import subprocess
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -269,7 +270,13 @@ class MethodSandbox:
         identities = [dataset_identity(dataset.root), dataset_identity(self.root)]
         self._proc = ctx.Process(target=_sandbox_main, args=(child, payload, identities, gt_allowed),
                                  name=f"selfseg-{self.name}")  # not daemonic: it may try to start children
-        self._proc.start()
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:  # the child starts with Ctrl-C ignored (kept across exec): the evaluator alone handles it
+            self._proc.start()
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
         child.close()
 
     def call(self, *request):

@@ -109,7 +109,7 @@ def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset
     os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
-    assert len(err.strip().splitlines()) == 1 and "interrupted" in err
+    assert len(err.strip().splitlines()) == 1 and "interrupted" in err, err
     assert fold0.exists() and not (out / "scores/analytic/depth-clustering/fold2.json").exists()
     resumed = subprocess.run(evaluate_bin + ["--out", str(out)], capture_output=True, text=True, timeout=300)
     fresh = subprocess.run(evaluate_bin + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True,
