@@ -133,7 +133,7 @@ def _fails(capsys, argv, match: str) -> None:
 def test_bad_input_exits_2_and_writes_nothing(generated, tmp_path, capsys):
     new = tmp_path / "new"
     _fails(capsys, [*ARGS, "--out", str(new), "--resolution", "0x48"], "width")
-    _fails(capsys, [*ARGS, "--out", str(new), "--objects-per-scene", "9"], "only 8 objects")
+    _fails(capsys, [*ARGS, "--out", str(new), "--objects-per-scene", "7"], "only 6 objects")
     empty = tmp_path / "empty_objects"
     empty.mkdir()
     _fails(capsys, [*ARGS, "--out", str(new), "--objects", str(empty)], "no meshes")
