@@ -3,9 +3,10 @@
 A method is built from its typed config dataclass, optionally ``fit`` on training videos, then
 asked to segment test frames. Methods receive :class:`selfseg.dataset.Video` objects, which
 carry RGB, depth, intrinsics and (only in the given-pose ablation) camera poses, but no ground
-truth; the evaluator runs ``fit`` and ``segment`` under ``ground_truth_forbidden``. Only methods
-that declare ``needs_ground_truth = True`` (the supervised upper bound, V1, the oracle) get
-:class:`selfseg.dataset.LabeledVideo` objects instead.
+truth. The evaluator runs ``fit`` and ``segment`` in a separate process, on an unlabeled view of
+the dataset (hard links of the frames, poses stripped unless given), with a ground-truth guard in
+every thread (:mod:`selfseg.eval.protocol`). Only methods that declare ``needs_ground_truth = True``
+(the supervised upper bound, the oracle) get :class:`selfseg.dataset.LabeledVideo` objects instead.
 """
 from __future__ import annotations
 
