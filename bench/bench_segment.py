@@ -1,6 +1,6 @@
 """``segment`` speed at 320×240 on the CPU: a saved model segmenting a folder of frames, end to end.
 
-    .venv/bin/python bench/bench_segment.py [--data /work/data/tiny] [--work /tmp/bench_segment]
+    .venv/bin/python bench/bench_segment.py [--data data/tiny] [--work /tmp/bench_segment]
                                             [--frames 20] [--threads 1] [--out bench/results/segment.json]
 
 Trains a model with ``train`` (``ours-v2``, the methods' default "fast" network at the default
@@ -60,7 +60,7 @@ def timed_segment(args: list[str], n: int) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, default=Path("/work/data/tiny"))
+    p.add_argument("--data", type=Path, default=Path("data/tiny"), help="a generated tiny dataset (generate_scenes --preset tiny --out data/tiny)")
     p.add_argument("--work", type=Path, default=Path("/tmp/bench_segment"))
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--threads", type=int, default=1)  # two threads cost ~5x the CPU on the shared cores

@@ -12,3 +12,14 @@ from analytic import make_dataset, two_box_scenes  # noqa: E402
 def analytic_dataset(tmp_path_factory) -> Path:
     """Three ray-cast videos of boxes and a cylinder (6 frames, 160×120), in the real format."""
     return make_dataset(tmp_path_factory.mktemp("analytic"), two_box_scenes())
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """The tiny preset with Workbench images (ground truth identical to Cycles'), generated once per
+    test session and shared by every module that needs real generated scenes."""
+    from selfseg.generate.cli import main as generate_scenes
+
+    out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
+    assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
+    return out

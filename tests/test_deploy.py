@@ -15,10 +15,20 @@ from selfseg.eval.cli import main as evaluate
 from selfseg.eval.protocol import fold_split, select_test_frames
 from selfseg.method.background import BackgroundConfig
 
-TINY = Path("/work/data/tiny")
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.skipif(not TINY.is_dir(), reason="needs the generated tiny dataset")
-SHORT = ["--config", str(ROOT / "configs/ours-tiny.yaml"), "--set", "phi1_train.steps=20", "--set", "train.steps=20"]
+TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _tiny(tiny_dataset):
+    global TINY
+    TINY = tiny_dataset
+
+
+# one torch thread for both trainings: a forked evaluate worker and this process may otherwise use
+# different thread counts, and float reductions then differ in the last bits
+SHORT = ["--config", str(ROOT / "configs/ours-tiny.yaml"), "--set", "phi1_train.steps=20", "--set", "train.steps=20",
+         "--set", "phi1_train.threads=1", "--set", "train.threads=1"]
 
 
 def _write_K(path: Path, K: np.ndarray) -> Path:
@@ -36,7 +46,7 @@ def test_train_and_segment_reproduce_evaluate(tmp_path, capsys, monkeypatch):
                      "--out", str(tmp_path / "r"), "--quiet"]) == 0
     # `train` on the unlabeled view evaluate gave the method (same frames; recon and over-segments stay
     # cached, φ is trained again: training is deterministic)
-    (view,) = (tmp_path / "r/work/_views").glob("*/tiny")
+    (view,) = (tmp_path / "r/work/_views").glob(f"*/{TINY.name}")
     shutil.rmtree(stages / "phi1")
     train_ids, test_ids = fold_split(ds, 0)
     model = tmp_path / "model"

@@ -11,8 +11,13 @@ import pytest
 from selfseg.dataset import Dataset, depth_to_png_units
 from selfseg.importers import associate, main, scale_K
 
-TINY = Path("/work/data/tiny")
-pytestmark = pytest.mark.skipif(not TINY.is_dir(), reason="needs the generated tiny dataset")
+TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _tiny(tiny_dataset):
+    global TINY
+    TINY = tiny_dataset
 
 
 def _png(path: Path, img: np.ndarray) -> None:

@@ -13,7 +13,6 @@ from selfseg.baselines.semantic_instances import (Schedule, UnlabeledFrames, cla
                                                   spherical_kmeans, training_key)
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import main as evaluate
-from selfseg.generate.cli import main as generate_scenes
 from selfseg.method.background import BackgroundConfig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -175,12 +174,9 @@ def test_bad_k_or_schedule_is_a_one_line_error(tmp_path, capsys, override, word)
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    """The tiny preset with Workbench images, shared by this module and test_stego.py through the
-    session's base temp folder (a second call finds the dataset complete and generates nothing)."""
-    out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
-    assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
-    return out
+def tiny(tiny_dataset) -> Path:
+    """conftest's session-wide generated tiny preset."""
+    return tiny_dataset
 
 
 def tiny_scores(results: Path, name: str) -> dict:

@@ -9,17 +9,14 @@ from pathlib import Path
 import pytest
 
 from selfseg.eval.cli import main as evaluate
-from selfseg.generate.cli import main as generate_scenes
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    """The tiny preset (Workbench images to save CI time; ground truth is identical to Cycles')."""
-    out = tmp_path_factory.mktemp("tiny") / "data"
-    assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
-    return out
+def tiny(tiny_dataset) -> Path:
+    """conftest's session-wide generated tiny preset."""
+    return tiny_dataset
 
 
 def scores(results: Path, name: str, fold: int) -> dict:

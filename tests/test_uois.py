@@ -102,11 +102,9 @@ def test_training_data_checks(analytic_dataset, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    """The tiny preset with Workbench images (shared with test_picie.py/test_stego.py through the base temp folder)."""
-    out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
-    assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
-    return out
+def tiny(tiny_dataset) -> Path:
+    """conftest's session-wide generated tiny preset."""
+    return tiny_dataset
 
 
 @pytest.fixture(scope="module")
