@@ -60,7 +60,7 @@ class TrainConfig:
     # Scope of the contrastive negatives (method.contrastive): "image" is the paper's (the segments of the
     # pixel's own frame). "batch" pushes the same object in two frames of a batch apart; measured: it
     # collapsed supervised embeddings at 2000 steps on tiny and gave φ1 lower same-object cosine across
-    # scenes (median .51 vs .72), see README "Design choices".
+    # scenes (median .51 vs .72); README "Choices where the paper is silent".
     negatives: str = "image"
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
