@@ -31,6 +31,14 @@ step supervised $BIN/evaluate --method supervised --data "$DATA" --config config
   --out "$RESULTS" --quiet
 step v1-disjoint $BIN/evaluate --method v1-disjoint --data "$DATA" --config configs/supervised-benchmark.yaml \
   --set train_data="$DISJOINT" --out "$RESULTS" --quiet
+# Baselines E and F (default schedules; one training per fold) and B and D (trained once on the
+# disjoint-object set with ground truth, tested zero-shot).
+for m in picie stego; do
+  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet
+done
+for m in uois-sim sdmaskrcnn-sim; do
+  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --set train_data="$DISJOINT" --out "$RESULTS" --quiet
+done
 for m in ours-v2 ours ours-v3 ours-v4; do
   step "$m" $BIN/evaluate --method "$m" --data "$DATA" --config configs/ours-benchmark.yaml --out "$RESULTS" --quiet
 done
