@@ -37,15 +37,15 @@ from selfseg.method.background import BackgroundConfig, BackgroundError, remove_
 from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
-from selfseg.method.train import (_RUNTIME_FIELDS, CHECKPOINT_DIR, TrainConfig, _latest_checkpoint, _save_torch,
-                                  resolve_device)
+from selfseg.method.train import (_RUNTIME_FIELDS, CHECKPOINT_DIR, OptimSchedule, TrainConfig, _latest_checkpoint,
+                                  _save_torch, resolve_device)
 from selfseg.raycast import backproject
 
 WEIGHTS = "weights.pt"
 
 
 @dataclass
-class Schedule:
+class Schedule(OptimSchedule):
     """Optimisation and augmentation of one training phase (sizes in pixels, H × W).
 
     Frames are first cropped to their foreground box grown by ``fg_crop_margin`` × its longer side
@@ -53,10 +53,6 @@ class Schedule:
     ``crop`` and flipped (:func:`selfseg.method.train.augment`); colour jitter is the methods'.
     """
 
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 1e-3  # AdamW, polynomial decay (power 0.9) to 0
-    weight_decay: float = 1e-4
     image_size: int = 160
     crop: tuple[int, ...] = (96, 128)
     scale_range: tuple[float, ...] = (0.75, 1.25)
@@ -67,17 +63,9 @@ class Schedule:
     hue: float = 0.05
     fg_crop: bool = True
     fg_crop_margin: float = 0.1
-    seed: int = 0
-    checkpoint_every: int = 200
-    device: str = "auto"  # "auto" → cuda if available, else cpu
-    threads: int = 0  # torch CPU threads; 0 = torch's default
 
     def __post_init__(self):
-        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
-            raise ValueError(f"steps, batch_size and checkpoint_every must be ≥ 1, got {self.steps}, "
-                             f"{self.batch_size} and {self.checkpoint_every}")
-        if not self.lr > 0 or self.weight_decay < 0:
-            raise ValueError(f"lr must be > 0 and weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
+        super().__post_init__()
         if self.image_size < 16:
             raise ValueError(f"image_size must be ≥ 16, got {self.image_size}")
         self.augment_config()  # validates crop, scale_range and fg_crop_margin

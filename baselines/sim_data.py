@@ -16,28 +16,16 @@ import numpy as np
 
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.fileio import hash_json
+from selfseg.method.train import OptimSchedule
 
 
 @dataclass
-class SimSchedule:
-    """Optimisation of one supervised training phase (AdamW, polynomial decay to 0; steps of ``batch_size``
-    full training frames, randomly flipped)."""
+class SimSchedule(OptimSchedule):
+    """Optimisation of one supervised training phase (steps of ``batch_size`` full training frames,
+    randomly flipped)."""
 
     steps: int = 2000
     batch_size: int = 4
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    seed: int = 0
-    checkpoint_every: int = 200
-    device: str = "auto"  # "auto" → cuda if available, else cpu
-    threads: int = 0  # torch CPU threads; 0 = torch's default
-
-    def __post_init__(self):
-        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
-            raise ValueError(f"steps, batch_size and checkpoint_every must be ≥ 1, got {self.steps}, "
-                             f"{self.batch_size} and {self.checkpoint_every}")
-        if not self.lr > 0 or self.weight_decay < 0:
-            raise ValueError(f"lr must be > 0 and weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
 
 
 def object_names(ds: Dataset) -> set[str]:

@@ -36,6 +36,28 @@ _RUNTIME_FIELDS = ("device", "threads", "checkpoint_every")
 
 
 @dataclass
+class OptimSchedule:
+    """Optimisation of one training phase, shared by the baselines' trainers: AdamW with polynomial
+    decay (power 0.9) to 0 over ``steps`` batches of ``batch_size``."""
+
+    steps: int = 1000
+    batch_size: int = 8
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    checkpoint_every: int = 200
+    device: str = "auto"  # "auto" → cuda if available, else cpu
+    threads: int = 0  # torch CPU threads; 0 = torch's default
+
+    def __post_init__(self):
+        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
+            raise ValueError(f"steps, batch_size and checkpoint_every must be ≥ 1, got {self.steps}, "
+                             f"{self.batch_size} and {self.checkpoint_every}")
+        if not self.lr > 0 or self.weight_decay < 0:
+            raise ValueError(f"lr must be > 0 and weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
+
+
+@dataclass
 class TrainConfig:
     """Training schedule and augmentation. Crop sizes in pixels (H, W), after resizing and scaling."""
 
