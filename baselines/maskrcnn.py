@@ -23,11 +23,12 @@ from torch import nn
 from selfseg.baselines.base import Method
 from selfseg.baselines.detection_ops import (box_iou, clip_boxes, decode_boxes, encode_boxes, masks_to_boxes, nms,
                                             paste_masks, roi_align)
-from selfseg.baselines.semantic_instances import begin_training, finished, result_key, save_final, train_loop
+from selfseg.baselines.semantic_instances import finished, result_key, save_final, train_loop
 from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_train_data, shared_train_dir,
                                         train_data_record)
 from selfseg.dataset import Video
 from selfseg.method.network import ENCODER_BLOCKS, ResNetEncoder
+from selfseg.method.train import begin_training
 
 WEIGHTS = "weights.pt"
 RPN_WEIGHTS = (1.0, 1.0, 1.0, 1.0)

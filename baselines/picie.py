@@ -36,11 +36,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, SemanticMethodBase, UnlabeledFrames,
-                                                  begin_training, final_centroids, finished, sample_pixels, save_final,
-                                                  spherical_kmeans, train_loop, training_key)
+                                                  final_centroids, finished, sample_pixels, save_final, spherical_kmeans,
+                                                  train_loop, training_key)
 from selfseg.config import from_dict, to_dict
 from selfseg.method.network import ENCODER_BLOCKS, RGB_MEAN, RGB_STD, ResNetEncoder, _conv_bn_relu
-from selfseg.method.train import _jitter, augment
+from selfseg.method.train import _jitter, augment, begin_training
 
 
 @dataclass

@@ -258,18 +258,10 @@ def train_loop(out_dir: Path, key: dict, modules: dict[str, nn.Module], opt: tor
                 "phase": desc, "key": key, "steps": len(losses), "loss": losses,
                 "final_loss_mean10": float(np.mean(losses[-10:])),
                 "seconds_this_session": round(time.perf_counter() - t0, 2),
-                "s_per_step": round((time.perf_counter() - t0) / max(done - start, 1), 4)})
+                "s_per_step": round((time.perf_counter() - t0) / max(done - start, 1), 4),
+                "threads": torch.get_num_threads()})
     bar.close()
     return losses
-
-
-def begin_training(sched: Schedule) -> torch.device:
-    """Threads, deterministic kernels and the weight seed of a phase; returns its device."""
-    if sched.threads > 0:
-        torch.set_num_threads(sched.threads)
-    torch.backends.cudnn.benchmark = False
-    torch.manual_seed(sched.seed)
-    return resolve_device(sched.device)
 
 
 def finished(weights: Path, key: dict) -> dict | None:

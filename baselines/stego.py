@@ -41,12 +41,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, SemanticMethodBase, UnlabeledFrames,
-                                                  begin_training, final_centroids, finished, result_key, save_final,
-                                                  train_loop, training_key)
+                                                  final_centroids, finished, result_key, save_final, train_loop,
+                                                  training_key)
 from selfseg.fileio import hash_json
 from selfseg.method.features import foreground_box
 from selfseg.method.network import RGB_MEAN, RGB_STD
-from selfseg.method.train import _jitter, augment
+from selfseg.method.train import _jitter, augment, begin_training
 
 
 @dataclass
