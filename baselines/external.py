@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from selfseg.baselines.base import Method
 from selfseg.dataset import DatasetError, Video, read_inst
+from selfseg.method_api import Method
 
 PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"
 

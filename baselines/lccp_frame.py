@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from selfseg.baselines.base import Method
 from selfseg.dataset import Video
 from selfseg.method.lccp import LCCPConfig, lccp_segment
 from selfseg.method.overseg import prune_small
+from selfseg.method_api import Method
 from selfseg.raycast import backproject
 
 

@@ -20,7 +20,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from selfseg.baselines.base import Method
 from selfseg.baselines.detection_ops import (box_iou, clip_boxes, decode_boxes, encode_boxes, masks_to_boxes, nms,
                                             paste_masks, roi_align)
 from selfseg.baselines.semantic_instances import finished, result_key, save_final, train_loop
@@ -29,6 +28,7 @@ from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_tra
 from selfseg.dataset import Video
 from selfseg.method.network import ENCODER_BLOCKS, ResNetEncoder
 from selfseg.method.train import begin_training
+from selfseg.method_api import Method
 
 WEIGHTS = "weights.pt"
 RPN_WEIGHTS = (1.0, 1.0, 1.0, 1.0)

@@ -29,7 +29,6 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from selfseg.baselines.base import Method
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json, write_json
@@ -39,6 +38,7 @@ from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
 from selfseg.method.train import (_RUNTIME_FIELDS, CHECKPOINT_DIR, OptimSchedule, TrainConfig, _latest_checkpoint,
                                   _save_torch, resolve_device)
+from selfseg.method_api import Method
 from selfseg.raycast import backproject
 
 WEIGHTS = "weights.pt"

@@ -5,9 +5,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfseg.baselines.base import Method
 from selfseg.dataset import LabeledVideo, Video
 from selfseg.eval.metrics import unique_inverse
+from selfseg.method_api import Method
 from selfseg.raycast import backproject
 
 

@@ -27,7 +27,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from selfseg.baselines.base import Method
 from selfseg.baselines.semantic_instances import finished, result_key, save_final, train_loop
 from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_train_data, shared_train_dir,
                                         train_data_record, xyz_map)
@@ -36,6 +35,7 @@ from selfseg.method.features import foreground_box
 from selfseg.method.meanshift import absorb_small, split_components
 from selfseg.method.network import RGB_MEAN, RGB_STD, EmbeddingNet, NetConfig
 from selfseg.method.train import begin_training
+from selfseg.method_api import Method
 
 WEIGHTS = "weights.pt"
 # Settings read only at test time: changing them reuses the trained networks.

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import Dataset
 from selfseg.eval.metrics import frame_metrics
 from selfseg.eval.protocol import EvalOptions, git_info, run_fold
 from selfseg.fileio import write_json
+from selfseg.registry import get_method_class
 
 
 def synthetic_frame(h: int, w: int, n_objects: int = 12, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

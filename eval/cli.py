@@ -15,12 +15,12 @@ import errno
 import sys
 from pathlib import Path
 
-from selfseg.baselines.registry import UnknownMethodError, get_method_class, method_names
 from selfseg.config import ConfigError, load_config
 from selfseg.dataset import Dataset, DatasetError, GroundTruthAccessError
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
 from selfseg.fileio import FileFormatError
+from selfseg.registry import UnknownMethodError, get_method_class, method_names
 
 TABLE_KEYS = ("P", "R", "IoU", "overlap_F", "boundary_F", "F75")
 

@@ -41,13 +41,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.baselines.base import Method
 from selfseg.config import ConfigError, config_hash, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, FORMAT_VERSION, RGB, SCENE_CAMERA, Dataset, DatasetError,
                              GroundTruthAccessError, dataset_identity, ground_truth_attempts, read_inst,
                              sandbox_ground_truth_guard, write_inst)
 from selfseg.eval.aggregate import N_BOOTSTRAP, BOOTSTRAP_SEED, SegmentationEvaluator
 from selfseg.fileio import FileFormatError, atomic_dir, atomic_write_text, dumps_json, read_json, write_json
+from selfseg.method_api import Method
 
 SCHEMA_VERSION = 1
 N_FOLDS = 3

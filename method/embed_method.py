@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from selfseg.baselines.base import Method
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json
 from selfseg.method.meanshift import MeanShiftConfig, cluster_frame
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
+from selfseg.method_api import Method
 
 
 @dataclass

@@ -34,11 +34,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.baselines.registry import UnknownMethodError, get_method_class
 from selfseg.config import ConfigError, config_hash, from_dict, load_config, to_dict
 from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, ground_truth_forbidden, read_depth_m,
                              read_inst, read_rgb, validate_K, write_inst)
 from selfseg.fileio import FileFormatError, atomic_dir, read_json, write_json
+from selfseg.registry import UnknownMethodError, get_method_class
 
 MODEL_FORMAT = "selfseg-model"
 MODEL_VERSION = 1

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 from cv2 import imread  # bound before the method runs: the guard must still see it
 
-from selfseg.baselines.base import Method
 from selfseg.dataset import MASK_INST, SCENE_CAMERA, SCENE_GT, Dataset, GroundTruthAccessError, read_inst
 from selfseg.eval.protocol import WORK_DIR, EvalOptions, run_fold
 from selfseg.fileio import read_json
+from selfseg.method_api import Method
 
 FAST = EvalOptions(frame_stride=2, n_boot=100)
 VIDEO = "000000"

@@ -88,7 +88,7 @@ def test_predictions_flag_needs_external(analytic_dataset, tmp_path, capsys):
 
 
 def test_cheating_method_is_stopped(analytic_dataset, tmp_path, capsys, monkeypatch):
-    from selfseg.baselines.registry import METHODS
+    from selfseg.registry import METHODS
 
     monkeypatch.setitem(METHODS, "cheat-open", "test_protocol:CheatOpen")  # reads mask_inst in fit
     code, _, err = run_cli(capsys, "--method", "cheat-open", "--data", analytic_dataset, "--out", tmp_path, "--quiet")

@@ -5,11 +5,11 @@ import trimesh
 
 from analytic import box, cylinder, make_dataset
 from cloud_fixtures import fused_cloud
-from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import Dataset
 from selfseg.method.lccp import LCCPConfig, edge_validity, lccp_segment
 from selfseg.method.overseg import OversegConfig, oversegment, prune_small
 from selfseg.method.supervoxels import Supervoxels, supervoxel_clustering
+from selfseg.registry import get_method_class
 
 
 def big_segments(labels, min_points=200):

@@ -21,7 +21,7 @@ def write_points_result(root, out):
     import trimesh
 
     from analytic import two_box_scenes
-    from selfseg.baselines.base import NoConfig
+    from selfseg.method_api import NoConfig
     from selfseg.dataset import Dataset
     from selfseg.eval.points import PointsEvaluator
     from selfseg.eval.protocol import provenance, write_result

@@ -6,13 +6,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from selfseg.baselines.base import Method
 from selfseg.baselines.external import ExternalConfig, ExternalPredictions
-from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import (MASK_INST, SCENE_GT, Dataset, DatasetError, GroundTruthAccessError, LabeledVideo,
                              PosesNotGiven, read_inst, write_inst)
 from selfseg.eval.metrics import METRIC_KEYS
 from selfseg.eval.protocol import WORK_DIR, EvalOptions, fold_split, make_folds, run_fold, select_test_frames
+from selfseg.method_api import Method
+from selfseg.registry import get_method_class
 
 FAST = EvalOptions(frame_stride=2, n_boot=100)
 

@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 
-from selfseg.baselines.base import Method
 from selfseg.dataset import Dataset, write_inst
 from selfseg.eval.cli import main
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, fold_split, run_fold
 from selfseg.fileio import read_json, write_json
 from selfseg.leaderboards.build import load_results
+from selfseg.method_api import Method
 
 QUICK = ["--frame-stride", "3", "--quiet"]
 

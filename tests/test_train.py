@@ -7,13 +7,13 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from analytic import make_dataset, two_box_scenes
-from selfseg.baselines.registry import get_method_class
 from selfseg.dataset import Dataset, DatasetError, ground_truth_forbidden
 from selfseg.method.embed_method import EmbeddingMethodConfig
 from selfseg.method.features import embed_frames, foreground_box, segment_features
 from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import FrameLabelSource, TrainConfig, augment, load_embedding_net, train_embedding
+from selfseg.registry import get_method_class
 
 torch.set_num_threads(2)
 SMALL_NET = NetConfig(width=8, aspp_channels=16, low_level_channels=8, decoder_channels=16)

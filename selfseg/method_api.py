@@ -1,4 +1,4 @@
-"""The interface every segmentation method implements, ours and the baselines alike.
+"""The interface every segmentation method implements: ours, the baselines and a user's own.
 
 A method is built from its typed config dataclass, optionally ``fit`` on training videos, then
 asked to segment test frames. Methods receive :class:`selfseg.dataset.Video` objects, which

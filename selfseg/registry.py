@@ -1,0 +1,79 @@
+"""The one registry from method names to classes, imported lazily ("module:Class" strings).
+
+Adding a built-in method is one line in ``METHODS``; its heavy imports (torch, open3d, ...) load only
+when it is used. A user's own method needs no line here: ``evaluate --method package.module:ClassName``
+imports it from ``PYTHONPATH`` (:func:`get_method_class`). Every class must subclass
+:class:`selfseg.method_api.Method`; a registered one's ``name`` must equal its key.
+"""
+from __future__ import annotations
+
+import difflib
+import importlib
+
+from selfseg.method_api import Method
+
+METHODS: dict[str, str] = {
+    "lccp-frame": "selfseg.baselines.lccp_frame:LCCPFrame",
+    "supervised": "selfseg.baselines.supervised:SupervisedMethod",
+    "v1-disjoint": "selfseg.baselines.supervised:V1DisjointMethod",
+    "oracle": "selfseg.baselines.simple:Oracle",
+    "one-segment": "selfseg.baselines.simple:OneSegment",
+    "fg-components": "selfseg.baselines.simple:ForegroundComponents",
+    "depth-clustering": "selfseg.baselines.simple:DepthClustering",
+    "external": "selfseg.baselines.external:ExternalPredictions",
+    "ours": "selfseg.method.pipeline:Ours",
+    "ours-v2": "selfseg.method.pipeline:OursV2",
+    "ours-v3": "selfseg.method.pipeline:OursV3",
+    "ours-v4": "selfseg.method.pipeline:OursV4",
+    "picie": "selfseg.baselines.picie:Picie",
+    "stego": "selfseg.baselines.stego:Stego",
+    "uois-sim": "selfseg.baselines.uois:UoisSim",
+    "sdmaskrcnn-sim": "selfseg.baselines.maskrcnn:SDMaskRCNNSim",
+}
+
+
+class UnknownMethodError(KeyError):
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0])
+
+
+def method_names() -> list[str]:
+    return sorted(METHODS)
+
+
+def import_method(spec: str) -> type[Method]:
+    """``"package.module:ClassName"`` → the class, imported; UnknownMethodError (one line) if the module
+    or class is missing or the class is not a :class:`Method`."""
+    module, sep, attr = spec.partition(":")
+    if not sep or not module or not attr:
+        raise UnknownMethodError(f"method {spec!r}: expected a registered name or 'package.module:ClassName'")
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        raise UnknownMethodError(f"method {spec!r}: cannot import module {e.name!r} (is it on PYTHONPATH?)") from None
+    cls = getattr(mod, attr, None)
+    if cls is None:
+        raise UnknownMethodError(f"method {spec!r}: module {module!r} ({mod.__file__}) has no {attr!r}")
+    if not (isinstance(cls, type) and issubclass(cls, Method)):
+        raise UnknownMethodError(f"method {spec!r}: {attr!r} is not a subclass of selfseg.method_api.Method")
+    return cls
+
+
+def get_method_class(name: str) -> type[Method]:
+    """A registered name, or ``"package.module:ClassName"`` for a method outside the registry, → its class.
+
+    Unknown names get a did-you-mean error; a registered class whose ``name`` differs from its key is an error.
+    """
+    if ":" in name:
+        return import_method(name)
+    try:
+        target = METHODS[name]
+    except KeyError:
+        close = difflib.get_close_matches(name, METHODS, n=3)
+        hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+        raise UnknownMethodError(f"unknown method {name!r}.{hint} Registered: {', '.join(method_names())}; "
+                                 "a method of your own: 'package.module:ClassName'") from None
+    cls = import_method(target)
+    if cls.name != name:
+        raise UnknownMethodError(f"method {name!r}: registered as {target}, whose name is {cls.name!r}")
+    return cls
