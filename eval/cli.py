@@ -1,6 +1,6 @@
-"""``evaluate``: score a registered method on a dataset under the paper's protocol.
+"""``evaluate``: score a registered method, or one of your own, on a dataset under the paper's protocol.
 
-    evaluate --method NAME --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
+    evaluate --method NAME|package.module:ClassName --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
              [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
              [--out results/] [--list-methods]
 
@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 
 from selfseg.config import ConfigError, load_config
-from selfseg.dataset import Dataset, DatasetError, GroundTruthAccessError
+from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, ground_truth_attempts,
+                             ground_truth_forbidden)
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
 from selfseg.fileio import FileFormatError
@@ -35,7 +36,8 @@ def _parse_folds(text: str) -> tuple[int, ...]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evaluate", description="Score a segmentation method under the paper's protocol "
                                 "(3-fold CV over videos, every 10th test frame, GT foreground given).")
-    p.add_argument("--method", help="registered method name (see --list-methods)")
+    p.add_argument("--method", help="registered method name (see --list-methods), or package.module:ClassName "
+                   "of your own method on PYTHONPATH")
     p.add_argument("--data", type=Path, help="dataset folder")
     p.add_argument("--config", type=Path, help="YAML file with the method's config")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -70,6 +72,20 @@ def format_table(name: str, records: list[dict]) -> str:
     return "\n".join([f"{name} on {records[0]['dataset']['name']}", line(head), *(line(r) for r in rows)])
 
 
+def method_class(spec: str, data: Path):
+    """``--method``: a registered name, or ``package.module:ClassName`` imported from ``PYTHONPATH``. A user's
+    module is imported here with ``data``'s ground truth guarded (any attempt is an error); the method's own
+    process imports it again under the same isolation as the built-in methods."""
+    if ":" not in spec:
+        return get_method_class(spec)
+    before = len(ground_truth_attempts)
+    with ground_truth_forbidden(data):
+        cls = get_method_class(spec)
+    if len(ground_truth_attempts) > before:
+        raise GroundTruthAccessError(f"while importing {spec!r}: {ground_truth_attempts[before]}")
+    return cls
+
+
 def run(args: argparse.Namespace) -> int:
     if args.list_methods:
         for name in method_names():
@@ -81,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.method or not args.data:
         raise ConfigError("--method and --data are required (or use --list-methods)")
-    cls = get_method_class(args.method)
+    cls = method_class(args.method, args.data)
     overrides = list(args.overrides)
     if args.predictions is not None:
         if args.method != "external":
@@ -90,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(cls.config_cls, args.config, overrides)
     try:
         options = EvalOptions(folds=args.folds, frame_stride=args.frame_stride, limit=args.limit,
-                              name=args.name or (f"{args.method}@fg-plane" if args.foreground == "plane" else None),
+                              name=args.name or (f"{cls.name}@fg-plane" if args.foreground == "plane" else None),
                               poses_given=args.poses_given, foreground=args.foreground)
     except ValueError as e:
         raise ConfigError(str(e)) from None
@@ -104,8 +120,8 @@ def run(args: argparse.Namespace) -> int:
         if record is not None and not args.quiet:
             print(f"fold {k}: reusing the finished result of an identical run", file=sys.stderr)
         records.append(record or run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet))
-    print(format_table(options.name or args.method, records))
-    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or args.method)}")
+    print(format_table(options.name or cls.name, records))
+    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or cls.name)}")
     return 0
 
 

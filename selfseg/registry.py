@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import re
 
 from selfseg.method_api import Method
 
@@ -51,6 +52,8 @@ def import_method(spec: str) -> type[Method]:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as e:
         raise UnknownMethodError(f"method {spec!r}: cannot import module {e.name!r} (is it on PYTHONPATH?)") from None
+    except SyntaxError as e:
+        raise UnknownMethodError(f"method {spec!r}: {e.filename}:{e.lineno}: {e.msg}") from None
     cls = getattr(mod, attr, None)
     if cls is None:
         raise UnknownMethodError(f"method {spec!r}: module {module!r} ({mod.__file__}) has no {attr!r}")
@@ -65,7 +68,7 @@ def get_method_class(name: str) -> type[Method]:
     Unknown names get a did-you-mean error; a registered class whose ``name`` differs from its key is an error.
     """
     if ":" in name:
-        return import_method(name)
+        return _user_method(name)
     try:
         target = METHODS[name]
     except KeyError:
@@ -76,4 +79,17 @@ def get_method_class(name: str) -> type[Method]:
     cls = import_method(target)
     if cls.name != name:
         raise UnknownMethodError(f"method {name!r}: registered as {target}, whose name is {cls.name!r}")
+    return cls
+
+
+def _user_method(spec: str) -> type[Method]:
+    """A method outside the registry: its ``name`` names its results, so it must be its own (a folder
+    name, not the base class's, not a registered method's unless it is that very class)."""
+    cls = import_method(spec)
+    if cls.name == Method.name or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", cls.name):
+        raise UnknownMethodError(f"method {spec!r}: set the class attribute name to a name of its own "
+                                 f"(letters, digits, '.', '_', '-'), got {cls.name!r}")
+    if cls.name in METHODS and import_method(METHODS[cls.name]) is not cls:
+        raise UnknownMethodError(f"method {spec!r}: its name {cls.name!r} is a registered method's "
+                                 f"({METHODS[cls.name]}); choose another")
     return cls
