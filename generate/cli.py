@@ -1,7 +1,8 @@
 """``generate_scenes``: generate a dataset of orbiting RGB-D videos of physics-dropped objects.
 
 Scenes are written atomically (temporary folder, then rename), so an interrupted run resumes:
-completed scenes are skipped. The output folder must be empty, absent, or this same dataset
+completed scenes are skipped; a scene whose Ray worker died is re-run by Ray (``--executor ray``).
+The output folder must be empty, absent, or this same dataset
 (same resolved config); ``--overwrite`` replaces an existing selfseg dataset. Bad input exits
 with code 2 and a message naming the problem, before anything is written.
 """
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import contextlib
 import multiprocessing
 import os
 import re
@@ -22,6 +24,7 @@ from tqdm import tqdm
 from selfseg.config import ConfigError, from_dict, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_INFO, RGB, SCENE_CAMERA, SCENE_GT,
                              SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
+from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, PRESETS, GenerateConfig, preset_config
@@ -57,7 +60,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated object names to draw from (e.g. a set disjoint from another dataset's, "
                         "for the v1-disjoint baseline); default: the preset's pool")
     p.add_argument("--seed", type=int, help="dataset seed (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default 1)")
+    p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default 1); "
+                   "with --executor ray and no --ray-address, the CPUs of the Ray instance started for the run")
+    p.add_argument("--executor", default="local", help=f"where scenes render: {' or '.join(EXECUTORS)} "
+                   "(Ray tasks, one per scene; default local)")
+    p.add_argument("--ray-address", help="join this Ray cluster (auto or HOST:PORT) instead of starting a local "
+                   "instance; --out must be on a filesystem every node sees")
+    p.add_argument("--ray-cpus-per-task", type=float, default=1, help="CPUs each scene's Ray task reserves (default 1)")
+    p.add_argument("--ray-gpus-per-task", type=float, default=0,
+                   help="GPUs each scene's Ray task reserves, for Cycles on GPU nodes (default 0: CPU rendering)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing selfseg dataset in --out")
     p.add_argument("--cache-dir", type=Path, default=Path(os.environ.get("SELFSEG_CACHE", Path.home() / ".cache" / "selfseg")),
                    help="cache for collision decompositions (default ~/.cache/selfseg or $SELFSEG_CACHE)")
@@ -167,8 +178,11 @@ _worker_library: list | None = None
 
 
 def _generate_in_worker(cfg_dict: dict, index: int, final_dir: str, cache_dir: str) -> dict:
-    """Process-pool entry: load the library once per worker process, then generate one scene."""
+    """Executor entry: load the library once per worker process, then generate one scene. A scene already in
+    place was finished by an attempt whose worker died before replying (Ray re-runs such tasks): no timings."""
     global _worker_library
+    if Path(final_dir).is_dir():
+        return {}
     cfg = from_dict(GenerateConfig, cfg_dict)
     if _worker_library is None:
         _worker_library = load_library(cfg)
@@ -185,10 +199,30 @@ def _summary(totals: dict, wall: float, n_frames: int, n_done: int, n_skipped: i
     return "\n".join(lines)
 
 
-def validate(args: argparse.Namespace) -> tuple[GenerateConfig, list]:
-    """Resolve the config, load the object library and check the output folder (raises on bad input)."""
+def open_executor(args: argparse.Namespace) -> cf.Executor | None:
+    """The scene executor: None for local rendering in this process (``--workers 1``), a spawn process pool for
+    local workers, or Ray tasks (starts or joins Ray; raises ExecutorError for bad executor options)."""
     if args.workers < 1:
         raise GenerateError(f"--workers must be at least 1, got {args.workers}")
+    if args.executor == "local" and args.ray_address is None and args.workers == 1:
+        return None
+    if args.ray_cpus_per_task <= 0 or args.ray_gpus_per_task < 0:
+        raise ExecutorError("--ray-cpus-per-task must be > 0 and --ray-gpus-per-task ≥ 0")
+    return make_executor(args.executor, args.ray_address, args.workers, num_cpus=args.ray_cpus_per_task,
+                         num_gpus=args.ray_gpus_per_task,
+                         mp_context=multiprocessing.get_context("spawn"))  # bpy is not fork-safe
+
+
+def _existing_ancestor(path: Path) -> Path:
+    path = path.resolve()
+    while not path.is_dir():
+        path = path.parent
+    return path
+
+
+def validate(args: argparse.Namespace, executor: cf.Executor | None = None) -> tuple[GenerateConfig, list]:
+    """Resolve the config, load the object library, check that Ray workers (if any) see the output folder and
+    check the output folder (raises on bad input, before anything is written)."""
     cfg = config_from_args(args)
     if not 0 <= cfg.seed < 2**32:
         raise GenerateError(f"--seed must be an integer in [0, 2^32), got {cfg.seed}")
@@ -197,12 +231,16 @@ def validate(args: argparse.Namespace) -> tuple[GenerateConfig, list]:
         print(f"generate_scenes: warning: the camera turns {step:.1f}° between rendered frames; "
               "frame-to-frame tracking needs about 2° at most (lower --frame-step)", file=sys.stderr)
     library = load_library(cfg)
+    if args.executor == "ray":
+        check_shared_folder(executor, _existing_ancestor(args.out))
     prepare_output(args.out, cfg, args.overwrite)
     return cfg, library
 
 
-def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: float) -> int:
-    """Generate the missing scenes, then the models and dataset_info.json; print the timing summary."""
+def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: float,
+        executor: cf.Executor | None = None) -> int:
+    """Generate the missing scenes (on ``executor``, else in this process), then the models and
+    dataset_info.json; print the timing summary."""
     totals = {"validate": time.perf_counter() - t_start, **dict.fromkeys(STAGES, 0.0), "models": 0.0}
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -212,7 +250,7 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
     todo = [i for i in range(cfg.scenes) if not (out / VIDEO_DIR.format(video_id=video_id_str(i))).is_dir()]
     skipped = cfg.scenes - len(todo)
     bar = tqdm(total=cfg.scenes, initial=skipped, desc="scenes", unit="scene", disable=args.quiet)
-    if args.workers == 1 or len(todo) <= 1:
+    if executor is None or (args.executor == "local" and len(todo) <= 1):
         for i in todo:
             t = generate_scene(cfg, i, library, out / VIDEO_DIR.format(video_id=video_id_str(i)), cache_dir,
                                progress=not args.quiet)
@@ -220,14 +258,14 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
                 totals[k] += v
             bar.update()
     else:
-        ctx = multiprocessing.get_context("spawn")  # bpy is not fork-safe
-        with cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) as pool:
-            futures = [pool.submit(_generate_in_worker, cfg_dict, i,
+        futures = [executor.submit(_generate_in_worker, cfg_dict, i,
                                    str(out / VIDEO_DIR.format(video_id=video_id_str(i))), str(cache_dir)) for i in todo]
-            for fut in cf.as_completed(futures):
-                for k, v in fut.result().items():
-                    totals[k] += v
-                bar.update()
+        for fut in cf.as_completed(futures):
+            for k, v in fut.result().items():
+                totals[k] += v
+            bar.update()
+        for stale in (out / VIDEOS_DIR).glob(".*.partial"):  # left by a worker that died mid-scene (re-run since)
+            shutil.rmtree(stale)
     bar.close()
 
     t0 = time.perf_counter()
@@ -247,12 +285,18 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.perf_counter()
     try:
-        cfg, library = validate(args)
-    except (GenerateError, ConfigError, DatasetError, FileFormatError, ValueError) as e:  # incl. ObjectLibraryError
+        executor = open_executor(args)
+    except (GenerateError, ExecutorError) as e:
         print(f"generate_scenes: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     try:
-        return run(args, cfg, library, t_start)
+        with executor if executor is not None else contextlib.nullcontext():
+            try:
+                cfg, library = validate(args, executor)
+            except (GenerateError, ConfigError, DatasetError, FileFormatError, ValueError) as e:  # incl. ExecutorError
+                print(f"generate_scenes: error: {e}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+            return run(args, cfg, library, t_start, executor)
     except KeyboardInterrupt:
         print("generate_scenes: interrupted; completed scenes are kept, re-run the same command to resume",
               file=sys.stderr)

@@ -46,6 +46,8 @@ import scipy.sparse as sp
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from tqdm import tqdm
 
+from selfseg.executor import make_executor
+
 Status = Literal["prefiltered_empty", "lp_integral", "milp_optimal", "time_limit"]
 
 
@@ -470,9 +472,9 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
 
     Both directions are solved (J is not symmetric). One executor task handles
     ``cfg.pairs_per_task`` unordered scene pairs as one :func:`match_batch`. Without
-    ``executor``, a ProcessPoolExecutor with ``cfg.workers`` processes is used (in-process when
-    ``workers`` ≤ 1); any ``concurrent.futures.Executor`` (e.g. a Dask or Ray one) can be passed
-    instead. Results are sorted by (src_scene, src_comp, tgt_scene, tgt_comp), so the output
+    ``executor``, a local process pool (:func:`selfseg.executor.make_executor`) with ``cfg.workers``
+    processes is used (in-process when ``workers`` ≤ 1); any ``concurrent.futures.Executor`` (e.g.
+    ``make_executor("ray")``) can be passed instead. Results are sorted by (src_scene, src_comp, tgt_scene, tgt_comp), so the output
     does not depend on scheduling.
     """
     pairs = [(a, b) for a in range(len(scenes)) for b in range(a + 1, len(scenes))]
@@ -487,7 +489,7 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
             bar.update(len(a[0]))
     else:
         own = executor is None
-        ex = cf.ProcessPoolExecutor(max_workers=cfg.workers) if own else executor
+        ex = make_executor("local", workers=cfg.workers) if own else executor
         try:
             futures = {ex.submit(_match_scene_pairs, *a): len(a[0]) for a in args}
             for fut in cf.as_completed(futures):

@@ -34,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import to_dict
+from selfseg.executor import make_executor
 from selfseg.fileio import write_json
 from selfseg.method.matching import MatchConfig, SceneGraph, cosine_distance, match_all, match_stats
 from selfseg.method.pruning import MatchDecision, NodeDecision, PruneConfig, prune_matches, register_clouds
@@ -223,11 +224,11 @@ def make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out_
     """Per-point object pseudo-labels (int32, −1 where the point has no segment) per scene id.
 
     Writes ``out_dir/matches.json``. ``executor`` (any ``concurrent.futures.Executor``) runs the
-    matching tasks and registrations; without it a ProcessPoolExecutor with
-    ``cfg.match.workers`` processes is used (everything in-process when ``workers`` ≤ 1).
+    matching tasks and registrations; without it a local process pool
+    (:func:`selfseg.executor.make_executor`) with ``cfg.match.workers`` processes is used (everything in-process when ``workers`` ≤ 1).
     """
     own = executor is None and cfg.match.workers > 1
-    ex = cf.ProcessPoolExecutor(max_workers=cfg.match.workers) if own else executor
+    ex = make_executor("local", workers=cfg.match.workers) if own else executor
     try:
         return _make_pseudo_labels(scenes, cfg, Path(out_dir), ex, progress)
     finally:
