@@ -2,9 +2,9 @@
 
 Scenes are written atomically (temporary folder, then rename), so an interrupted run resumes:
 completed scenes are skipped; a scene whose Ray worker died is re-run by Ray (``--executor ray``).
-The output folder must be empty, absent, or this same dataset
-(same resolved config); ``--overwrite`` replaces an existing selfseg dataset. Bad input exits
-with code 2 and a message naming the problem, before anything is written.
+The output folder must be empty, absent, or this same dataset (same resolved config); ``--overwrite``
+replaces an existing selfseg dataset. Bad input exits with code 2 and a message naming the problem,
+before anything is written.
 """
 from __future__ import annotations
 
@@ -214,6 +214,7 @@ def open_executor(args: argparse.Namespace) -> cf.Executor | None:
 
 
 def _existing_ancestor(path: Path) -> Path:
+    """``path`` if it is a folder, else its nearest existing parent (where the shared-folder probe can go)."""
     path = path.resolve()
     while not path.is_dir():
         path = path.parent
