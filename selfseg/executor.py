@@ -91,6 +91,13 @@ class RayExecutor(cf.Executor):
                 ray.init(address=address, **quiet)
         except ConnectionError as e:
             raise ExecutorError(f"--ray-address {address}: {str(e).splitlines()[0]}") from None
+        fits = [n for n in ray.nodes() if n["Alive"] and n["Resources"].get("CPU", 0) >= num_cpus
+                and n["Resources"].get("GPU", 0) >= num_gpus]
+        if not fits:  # Ray would wait for such a node forever
+            where = f"cluster {address}" if address else f"local Ray instance (--workers {workers} CPUs)"
+            ray.shutdown()
+            raise ExecutorError(f"no node of the {where} has {num_cpus:g} CPUs and {num_gpus:g} GPUs for one task; "
+                                "lower --ray-cpus-per-task / --ray-gpus-per-task")
 
     def submit(self, fn: Callable, /, *args, **kwargs) -> cf.Future:
         ref = self._task.remote(self._cloudpickle.dumps((fn, args, kwargs)))

@@ -139,6 +139,19 @@ def test_bad_executor_options_one_line(tmp_path, capsys, extra, message):
     assert not out.exists() and time.monotonic() - t0 < 10
 
 
+@pytest.mark.parametrize("extra", [["--ray-cpus-per-task", "3"], ["--ray-gpus-per-task", "1"]])
+def test_task_larger_than_any_node_one_line(tmp_path, extra):
+    """A task no node can hold (Ray would wait forever): rc 2, one line, nothing written (no GPU here)."""
+    if extra[0] == "--ray-gpus-per-task" and Path("/dev/nvidia0").exists():
+        pytest.skip("this machine has a GPU")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "selfseg.generate.cli", *TINY, "--out", str(out), "--executor", "ray",
+                        "--workers", "2", *extra], capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("generate_scenes:")]
+    assert r.returncode == 2 and len(lines) == 1 and "no node of the local Ray instance" in lines[0], r.stderr
+    assert not out.exists()
+
+
 def _scenes(rng: np.random.Generator) -> list[SceneGraph]:
     """Three scenes of two 4-node path components; features are noisy copies of shared patterns."""
     patterns = [rng.normal(size=(4, 8)) for _ in range(2)]
