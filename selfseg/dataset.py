@@ -500,6 +500,9 @@ def _audit(event: str, args: tuple) -> None:
             _check_path(args[1])
     elif _sandboxed and event in _PROCESS_EVENTS:
         _refuse(f"{event} {args[:2]!r} (methods may not start programs)")
+    elif _sandboxed and event in ("socket.connect", "socket.sendto") and len(args) > 1:
+        _refuse(f"{event} to {args[1]!r} (methods may not use the network or local sockets: a server, "
+                "e.g. a running Ray cluster, could hand them ground truth)")
     elif _sandboxed and event == "ctypes.dlsym" and len(args) > 1 and args[1] in _CTYPES_DENIED:
         _refuse(f"ctypes lookup of {args[1]!r} (methods may not open files or start programs through ctypes)")
     elif _sandboxed and event == "ctypes.call_function" and len(args) > 1:

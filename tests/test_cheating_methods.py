@@ -171,6 +171,19 @@ class CtypesCheat(Cheat):
         os.close(libc.open(ctypes.c_char_p(os.fsencode(_mask())), 0))
 
 
+class SocketCheat(Cheat):
+    """Asks a server for ground truth (as a task on a running Ray cluster could): the server, in the test's
+    process, sends the mask file's bytes to whoever connects."""
+
+    name = "cheat-socket"
+
+    def cheat(self):
+        import socket
+
+        with socket.create_connection(("127.0.0.1", int(os.environ["CHEAT_PORT"])), timeout=5) as s:
+            s.recv(1 << 20)
+
+
 class ViewCheat(Cheat):
     """Looks for ground truth next to the frames it was given (the unlabeled view)."""
 
@@ -191,7 +204,28 @@ class ForkedWorkerCheat(Cheat):
 
 
 CHEATS = [ForkedWorkerCheat, ThreadCheat, CatchCheat, ImportTimeCheat, InitCheat, EarlyImreadCheat, VideoCaptureCheat, EmptyCaptureCheat,
-          Open3dCheat, ProcRootCheat, DirFdCheat, SubprocessCheat, SpawnCheat, CtypesCheat, ViewCheat]
+          Open3dCheat, ProcRootCheat, DirFdCheat, SubprocessCheat, SpawnCheat, CtypesCheat, SocketCheat, ViewCheat]
+
+
+def _serve_once(payload: bytes) -> int:
+    """A localhost TCP server (daemon thread) sending ``payload`` to its first client; returns its port."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve():
+        server.settimeout(60)
+        with server:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            with conn:
+                conn.sendall(payload)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server.getsockname()[1]
 
 
 @pytest.fixture
@@ -208,6 +242,8 @@ def test_cheat_is_detected_and_not_scored(linked_dataset, tmp_path, monkeypatch,
     monkeypatch.setenv("CHEAT_ROOT", str(linked_dataset))
     if cheat is ImportTimeCheat:
         monkeypatch.setenv("CHEAT_AT_IMPORT", "1")
+    if cheat is SocketCheat:
+        monkeypatch.setenv("CHEAT_PORT", str(_serve_once(Path(_mask()).read_bytes())))
     out = tmp_path / "out"
     with pytest.raises(GroundTruthAccessError):
         run_fold(cheat, None, Dataset(linked_dataset), 0, out, FAST, progress=False)
