@@ -24,6 +24,7 @@ objects: ground-truth camera poses are used only with ``recon.use_gt_poses`` (an
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -69,7 +70,7 @@ class OursConfig(EmbeddingMethodConfig):
     feature_stride: int = 5  # φ1 segment features average every n-th frame
     pseudo: PseudoLabelConfig = field(default_factory=PseudoLabelConfig)
     labels: Literal["pseudo", "overseg"] = "pseudo"  # "overseg": V2, φ2 = φ1 trained on LCCP labels
-    stage_dir: str = ""  # per-video stage cache; "" = OUT/work/_stages/<dataset folder name> (see stage_cache)
+    stage_dir: str = ""  # per-video stage cache; "" = OUT/work/_stages/<dataset folder>-<path hash> (stage_cache)
 
 
 @dataclass
@@ -144,8 +145,11 @@ class Ours(EmbeddingMethodBase):
             return StageCache(self.config.stage_dir)
         if self.workdir is None:
             raise ValueError(f"method {self.name!r} needs a workdir or config stage_dir for its stage cache")
-        # workdir is OUT/work/<run>/<dataset>/fold<k>: share OUT/work/_stages/<dataset> across runs and folds
-        return StageCache(self.workdir.parents[2] / "_stages" / videos[0].root.name)
+        # workdir is OUT/work/<run>/<dataset>/fold<k>: share OUT/work/_stages/<dataset>-<path hash> across runs
+        # and folds. Stage keys hold the dataset's path, so the method's unlabeled view and evaluate3d's real
+        # dataset (same folder name) get separate caches instead of rebuilding each other's stages.
+        root = videos[0].root
+        return StageCache(self.workdir.parents[2] / "_stages" / f"{root.name}-{hash_json(os.path.abspath(root), n=8)}")
 
     def run_overseg(self, videos: list[Video]) -> StageCache:
         """Reconstruct and over-segment every video (per-video stages, cached); returns the stage cache."""

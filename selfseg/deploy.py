@@ -76,7 +76,7 @@ def train_model(method: str, data: Path, out: Path, config_path: Path | None = N
         dataset.video(v)  # unknown ids: one clear error
     if (out / MODEL_JSON).is_file():
         raise FileExistsError(f"{out}: a model already exists; choose another --out or delete it")
-    # Ours keeps per-video stages in workdir.parents[2]/_stages: here <out>.work/_stages/<dataset folder>
+    # Ours keeps per-video stages in workdir.parents[2]/_stages: here <out>.work/_stages/<dataset folder>-<hash>
     m = cls(config, Path(f"{out}.work") / "train" / dataset.name / "all")
     with ground_truth_forbidden(dataset.root):
         m.fit([dataset.video(v) for v in ids])

@@ -9,6 +9,7 @@ place, so an interrupted run leaves either a complete, valid stage or nothing.
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import time
 from pathlib import Path
@@ -38,15 +39,23 @@ class StageCache:
 
     @contextlib.contextmanager
     def write(self, stage: str, scene: str, key: dict) -> Iterator[Path]:
-        """Yield a temporary folder for the stage's files; on success it replaces any stale output."""
+        """Yield a temporary folder for the stage's files; on success it replaces any stale output.
+
+        Safe with concurrent writers of the same stage (two runs sharing a cache): each stages in its own
+        folder, and the first to finish wins; a later writer with the same key discards its output, so a
+        valid stage never changes under a reader (stages need not be bit-reproducible).
+        """
         final = self.path(stage, scene)
         start = time.perf_counter()
-        staging = final.with_name(final.name + ".new")
+        staging = final.with_name(f"{final.name}.new-{os.getpid()}")
         shutil.rmtree(staging, ignore_errors=True)
         with atomic_dir(staging) as tmp:
             yield tmp
             write_json(tmp / STAGE_FILE, {"stage": stage, "scene": scene, "key": key, "key_hash": hash_json(key),
                                           "seconds": round(time.perf_counter() - start, 3)})
+        if self.is_valid(stage, scene, key):  # another writer finished the same stage first
+            shutil.rmtree(staging)
+            return
         if final.exists():
             shutil.rmtree(final)
         staging.rename(final)

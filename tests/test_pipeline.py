@@ -45,7 +45,8 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
         pred = method.segment(ds.video("000002"), 0, fg)
     assert pred.shape == fg.shape and (pred[fg] > 0).all() and (pred[~fg] == 0).all()
 
-    stages = tmp_path / "work" / "_stages" / dense_dataset.name  # shared by every run and fold
+    stages = method.stage_cache(train).root  # shared by every run and fold
+    assert stages.parent == tmp_path / "work" / "_stages" and stages.name.startswith(dense_dataset.name + "-")
     for vid in ds.video_ids[:2]:
         inst = ds.labeled(vid).inst(10)
         seg = read_label_map(stages / "overseg" / vid / "segmaps" / "000010.png")
