@@ -1,3 +1,4 @@
+import signal
 import sys
 from pathlib import Path
 
@@ -23,3 +24,15 @@ def tiny_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
     assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
     return out
+
+
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.fixture
+def ctrl_c_child() -> dict:
+    """Popen keyword arguments for a child that a test interrupts like a terminal's Ctrl-C: its own process
+    group, and SIGINT at its default even when the suite runs as a background job (which ignores SIGINT,
+    and Python keeps an ignored SIGINT ignored)."""
+    return {"start_new_session": True, "preexec_fn": _sigint_default}

@@ -42,12 +42,12 @@ def test_negative_seed_is_one_line(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_ctrl_c_during_cycles_exits_130_and_resumes_identically(tmp_path):
+def test_ctrl_c_during_cycles_exits_130_and_resumes_identically(tmp_path, ctrl_c_child):
     cmd = [sys.executable, "-m", "selfseg.generate.cli", "--preset", "tiny", "--renderer", "cycles", "--scenes", "3",
            "--frames", "6", "--quiet"]
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(cmd + ["--out", str(out)], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            **ctrl_c_child)
     deadline = time.monotonic() + 240
     while not list(out.glob("videos/.*.partial/rgb/*.png")) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)

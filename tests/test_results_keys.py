@@ -96,12 +96,12 @@ def test_ids_out_of_range_are_one_line_errors(analytic_dataset, tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset, tmp_path):
+def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset, tmp_path, ctrl_c_child):
     evaluate_bin = [sys.executable, "-m", "selfseg.eval.cli", "--method", "depth-clustering", "--data",
                     str(analytic_dataset), "--frame-stride", "1", "--quiet"]
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(evaluate_bin + ["--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, **ctrl_c_child)
     fold0 = out / "scores/analytic/depth-clustering/fold0.json"
     deadline = time.monotonic() + 120
     while not fold0.exists() and proc.poll() is None and time.monotonic() < deadline:
