@@ -26,7 +26,9 @@ camera-position and -rotation error left after that alignment (pose drift) is re
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -41,6 +43,7 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, provenance, write_result
+from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, read_json
 from selfseg.method.overseg import oversegment
 from selfseg.method.pipeline import Ours, OursConfig
@@ -95,12 +98,14 @@ def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dic
                "drift_rot_mean_deg": float(np.mean(rot))}
 
 
-def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROWS,
-                   progress: bool = True) -> tuple[list[SceneSegmentations], dict[str, float]]:
+def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROWS, progress: bool = True,
+                   executor: cf.Executor | None = None) -> tuple[list[SceneSegmentations], dict[str, float]]:
     """Run the pipeline on every video of ``dataset`` without ground truth; returns the labels of each
-    requested row and the seconds spent per step in this run (cached stages cost ~0)."""
+    requested row and the seconds spent per step in this run (cached stages cost ~0). ``executor`` runs
+    the matching and registration tasks (e.g. Ray); None: a local process pool."""
     videos = [dataset.video(v) for v in dataset.video_ids]
     method = Ours(config, workdir)
+    method.executor = executor
     seconds: dict[str, float] = {}
     with ground_truth_forbidden(dataset.root):
         t0 = time.perf_counter()
@@ -177,7 +182,8 @@ def _row_seconds(row: str, seconds: dict[str, float]) -> float:
 
 
 def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, models: dict[str, dict] | None = None,
-               max_dist_m: float = GT_MAX_DIST_M, progress: bool = True) -> list[dict]:
+               max_dist_m: float = GT_MAX_DIST_M, progress: bool = True,
+               executor: cf.Executor | None = None) -> list[dict]:
     """Segment every video, score each row against the GT points and write its result record.
 
     ``models`` ({video_id: {obj_id: mesh in metres, model frame}}) overrides the dataset's model files
@@ -189,7 +195,7 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     out = Path(out)
     workdir = out / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD)
     workdir.mkdir(parents=True, exist_ok=True)
-    scenes, seconds = segment_scenes(dataset, config, workdir, rows, progress)
+    scenes, seconds = segment_scenes(dataset, config, workdir, rows, progress, executor)
 
     aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in scenes}
     n_frames = sum(len(s.recon.frame_ids) for s in scenes)
@@ -250,6 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
     p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
+    p.add_argument("--executor", default="local", help=f"where matching and registrations run: {' or '.join(EXECUTORS)} "
+                   "(default local: a process pool)")
+    p.add_argument("--ray-address", default=None, help="with --executor ray: 'auto' or HOST:PORT of a running cluster "
+                   "(default: start a Ray instance with this machine's CPUs for the run)")
     return p
 
 
@@ -259,11 +269,17 @@ def main(argv: list[str] | None = None) -> int:
         dataset = Dataset(args.data)
         config = load_config(OursConfig, args.config, args.overrides)
         rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
-        records = run_table2(dataset, config, args.out, rows, progress=not args.quiet)
+        if args.executor == "local" and args.ray_address is None:
+            records = run_table2(dataset, config, args.out, rows, progress=not args.quiet)
+        else:
+            with make_executor(args.executor, args.ray_address, os.cpu_count() or 1) as executor:
+                args.out.mkdir(parents=True, exist_ok=True)
+                check_shared_folder(executor, args.out)
+                records = run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=executor)
     except GroundTruthAccessError as e:
         print(f"evaluate3d: error: the pipeline tried to read ground truth: {e}", file=sys.stderr)
         return 2
-    except (ConfigError, DatasetError, FileFormatError, FileNotFoundError) as e:
+    except (ConfigError, DatasetError, FileFormatError, FileNotFoundError, ExecutorError) as e:
         print(f"evaluate3d: error: {e}", file=sys.stderr)
         return 2
     print(format_table(records))

@@ -24,6 +24,7 @@ objects: ground-truth camera poses are used only with ``recon.use_gt_poses`` (an
 """
 from __future__ import annotations
 
+import concurrent.futures as cf
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -139,6 +140,8 @@ class Ours(EmbeddingMethodBase):
 
     name = "ours"
     config_cls = OursConfig
+    # where matching and registrations fan out (evaluate3d --executor ray); None: a local process pool
+    executor: cf.Executor | None = None
 
     def stage_cache(self, videos: list[Video]) -> StageCache:
         if self.config.stage_dir:
@@ -192,7 +195,7 @@ class Ours(EmbeddingMethodBase):
             recons.append(load_recon(cache.path("recon", v.video_id)))
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write("all", "scenes", key) as tmp:
-            labels = make_pseudo_labels(scenes, cfg.pseudo, tmp)
+            labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
             (tmp / "features").mkdir()
             (tmp / "labels").mkdir()
             for v, scene, rec in zip(videos, scenes, recons):
