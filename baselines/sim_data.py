@@ -9,6 +9,7 @@ sharing an object name with the test dataset raises :class:`selfseg.dataset.Data
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,8 +40,8 @@ def open_disjoint_train_data(path: str, test_root: Path, method: str) -> Dataset
     if not path:
         raise DatasetError(f"{method} needs train_data: a dataset generated with an object pool disjoint from the "
                            f"test data (generate_scenes --object-pool ...), given with --set train_data=PATH")
-    try:
-        train = Dataset(path)
+    try:  # absolute: a method's sandbox refuses ground-truth names on relative paths (it cannot tell them from
+        train = Dataset(os.path.abspath(path))  # opens relative to a directory descriptor)
     except DatasetError as e:
         raise DatasetError(f"{method} train_data is not usable: {e}") from None
     test = Dataset(test_root)

@@ -121,9 +121,11 @@ def fold0(results: Path, name: str) -> dict:
 
 
 @pytest.mark.slow
-def test_uois_end_to_end_on_tiny(tiny, tiny_disjoint, tmp_path):
+def test_uois_end_to_end_on_tiny(tiny, tiny_disjoint, tmp_path, monkeypatch):
+    monkeypatch.chdir(tiny_disjoint.parent.parent)  # train_data relative to the working directory, as in the demo
+    relative = tiny_disjoint.relative_to(tiny_disjoint.parent.parent)
     assert evaluate(["--method", "uois-sim", "--data", str(tiny), "--out", str(tmp_path), "--folds", "0", "--quiet",
-                     "--config", str(CONFIGS / "uois-sim-tiny.yaml"), "--set", f"train_data={tiny_disjoint}",
+                     "--config", str(CONFIGS / "uois-sim-tiny.yaml"), "--set", f"train_data={relative}",
                      "--set", "frame_stride=2", "--set", "dsn_train.steps=40", "--set", "rrn_train.steps=30"]) == 0
     rec = fold0(tmp_path, "uois-sim")
     m = rec["metrics"]
