@@ -40,8 +40,10 @@ def open_disjoint_train_data(path: str, test_root: Path, method: str) -> Dataset
     if not path:
         raise DatasetError(f"{method} needs train_data: a dataset generated with an object pool disjoint from the "
                            f"test data (generate_scenes --object-pool ...), given with --set train_data=PATH")
-    try:  # absolute: a method's sandbox refuses ground-truth names on relative paths (it cannot tell them from
-        train = Dataset(os.path.abspath(path))  # opens relative to a directory descriptor)
+    # absolute: a method's sandbox refuses ground-truth names on relative paths (it cannot tell them from
+    # opens relative to a directory descriptor)
+    try:
+        train = Dataset(os.path.abspath(path))
     except DatasetError as e:
         raise DatasetError(f"{method} train_data is not usable: {e}") from None
     test = Dataset(test_root)
