@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from selfseg.dataset import DatasetError, Video, read_inst
+from selfseg.eval.protocol import PREDICTION_PNG
 from selfseg.method_api import Method
-
-PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"
 
 
 class PredictionsError(DatasetError):

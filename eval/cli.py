@@ -2,7 +2,7 @@
 
     evaluate --method NAME|package.module:ClassName --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
              [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
-             [--out results/] [--list-methods]
+             [--out results/] [--list-methods] [--executor local|ray] [--ray-address auto|HOST:PORT]
 
 Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table.
 Errors in the inputs (unknown method, missing dataset, bad config or predictions) print one
@@ -11,7 +11,9 @@ message naming the file or option and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import errno
+import os
 import sys
 from pathlib import Path
 
@@ -20,6 +22,8 @@ from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, grou
                              ground_truth_forbidden)
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
+from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, check_shared_folder, \
+    executor_config, make_executor
 from selfseg.fileio import FileFormatError
 from selfseg.registry import UnknownMethodError, get_method_class, method_names
 
@@ -54,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "removing the support plane; scored on the GT foreground; run name gets '@fg-plane')")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
     p.add_argument("--list-methods", action="store_true", help="list registered methods and exit")
+    add_executor_arguments(p, "folds (one task per fold: the method's process, its scoring and its files)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -86,6 +91,30 @@ def method_class(spec: str, data: Path):
     return cls
 
 
+def run_folds_as_tasks(where: ExecutorConfig, cls, config, dataset: Dataset, folds: list[int], out: Path,
+                       options: EvalOptions, quiet: bool) -> dict[int, dict]:
+    """Run ``folds`` as tasks of the executor ``where`` names (e.g. Ray: one task per fold, reserving
+    ``ray_cpus_per_task`` CPUs). A task is what :func:`run_fold` does here: the method in its own sandboxed
+    process (which cannot open sockets, so it cannot reach the cluster), then scoring and the result files,
+    written to ``out`` (which every node must see). Returns {fold: record}; Ctrl-C cancels the tasks."""
+    ex = make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
+                       num_gpus=where.ray_gpus_per_task)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        check_shared_folder(ex, out)
+        futures = {ex.submit(run_fold, cls, config, dataset, k, out, options, False): k for k in folds}
+        records = {}
+        for f in cf.as_completed(futures):
+            records[futures[f]] = f.result()
+            if not quiet:
+                print(f"fold {futures[f]}: finished ({len(records)}/{len(folds)})", file=sys.stderr)
+    except BaseException:
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown()
+    return records
+
+
 def run(args: argparse.Namespace) -> int:
     if args.list_methods:
         for name in method_names():
@@ -114,13 +143,18 @@ def run(args: argparse.Namespace) -> int:
     if not dataset.has_labels():
         raise DatasetError(f"{dataset.root}: has no ground truth (no scene_gt.json / mask_inst/), so evaluate cannot "
                            "score it; use train and segment for unlabeled recordings")
-    records = []
+    where = executor_config(args, args.config)
+    records = {}
     for k in options.folds:  # a fold finished by an earlier run with the same keys is reused (resume)
-        record = finished_fold(cls, config, dataset, k, args.out, options)
-        if record is not None and not args.quiet:
+        records[k] = finished_fold(cls, config, dataset, k, args.out, options)
+        if records[k] is not None and not args.quiet:
             print(f"fold {k}: reusing the finished result of an identical run", file=sys.stderr)
-        records.append(record or run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet))
-    print(format_table(options.name or cls.name, records))
+    todo = [k for k in options.folds if records[k] is None]
+    if where.distributed and todo:
+        records.update(run_folds_as_tasks(where, cls, config, dataset, todo, args.out, options, args.quiet))
+    else:  # plain local runs: one fold after the other, from this process
+        records.update({k: run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet) for k in todo})
+    print(format_table(options.name or cls.name, [records[k] for k in options.folds]))
     print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or cls.name)}")
     return 0
 
@@ -135,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     except GroundTruthAccessError as e:
         print(f"evaluate: error: method {args.method!r} tried to read ground truth ({args.out / 'rejected'}): {e}",
               file=sys.stderr)
-    except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError) as e:
+    except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError,
+            ExecutorError) as e:
         print(f"evaluate: error: {e}", file=sys.stderr)
     except OSError as e:
         if e.errno not in (errno.ENOSPC, errno.EDQUOT):

@@ -54,6 +54,7 @@ N_FOLDS = 3
 SCORES_JSON = "scores/{dataset}/{name}/fold{fold}.json"
 FRAMES_JSONL = "scores/{dataset}/{name}/fold{fold}.frames.jsonl"
 PREDICTIONS_DIR = "predictions/{name}/{dataset}"
+PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"  # one frame's instance map in PREDICTIONS_DIR (and in `external`'s input)
 WORK_DIR = "work/{name}/{dataset}/fold{fold}"
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
@@ -175,24 +176,28 @@ def unlabeled_view(dataset: Dataset, out: Path, poses_given: bool) -> Path:
                                        folder=dataset.root.resolve().name)
     if view.is_dir():
         return view
-    with atomic_dir(view) as tmp:
-        shutil.copyfile(dataset.root / DATASET_INFO, tmp / DATASET_INFO)
-        for vid in dataset.video_ids:
-            cams = read_json(dataset.root / SCENE_CAMERA.format(video_id=vid))
-            for key in cams:
-                for template in (RGB, DEPTH):
-                    rel = template.format(video_id=vid, frame_id=int(key))
-                    (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-                    try:
-                        os.link(dataset.root / rel, tmp / rel)
-                    except FileNotFoundError:
-                        raise DatasetError(f"{dataset.root / rel}: missing file") from None
-                    except OSError:  # another file system, or not allowed to link: copy
-                        shutil.copyfile(dataset.root / rel, tmp / rel)
-                if not poses_given:
-                    cams[key] = {**cams[key], "cam_R_w2c": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                                 "cam_t_w2c": [0.0, 0.0, 0.0]}
-            write_json(tmp / SCENE_CAMERA.format(video_id=vid), cams)
+    try:
+        with atomic_dir(view) as tmp:
+            shutil.copyfile(dataset.root / DATASET_INFO, tmp / DATASET_INFO)
+            for vid in dataset.video_ids:
+                cams = read_json(dataset.root / SCENE_CAMERA.format(video_id=vid))
+                for key in cams:
+                    for template in (RGB, DEPTH):
+                        rel = template.format(video_id=vid, frame_id=int(key))
+                        (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+                        try:
+                            os.link(dataset.root / rel, tmp / rel)
+                        except FileNotFoundError:
+                            raise DatasetError(f"{dataset.root / rel}: missing file") from None
+                        except OSError:  # another file system, or not allowed to link: copy
+                            shutil.copyfile(dataset.root / rel, tmp / rel)
+                    if not poses_given:
+                        cams[key] = {**cams[key], "cam_R_w2c": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                                     "cam_t_w2c": [0.0, 0.0, 0.0]}
+                write_json(tmp / SCENE_CAMERA.format(video_id=vid), cams)
+    except OSError:  # another fold (a parallel task) finished the same view first: it is complete, keep it
+        if not view.is_dir():
+            raise
     return view
 
 
@@ -237,7 +242,7 @@ def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_al
                 preds = method.segment_video(open_video(vid), frames, fg)
                 for f in frames:
                     pred = _check_prediction(preds.get(f), method_cls.name, vid, f, (view.height, view.width))
-                    write_inst(Path(staging) / f"{vid}/{f:06d}.png", pred)
+                    write_inst(Path(staging) / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
                 reply = None
             conn.send(("ok", reply, time.perf_counter() - t0, list(ground_truth_attempts)))
         except BaseException as e:  # noqa: BLE001 (reported to the parent, which raises)
@@ -343,7 +348,7 @@ def finished_fold(method_cls: type[Method], config, dataset: Dataset, fold: int,
     frames = [(v, f) for v in record.get("test_videos", []) for f in select_test_frames(
         dataset.video(v).frame_ids, options.frame_stride, options.limit)]
     if want["commit"] is None or _resume_key(record) != want or \
-            not all((pred_dir / f"{v}/{f:06d}.png").is_file() for v, f in frames):
+            not all((pred_dir / PREDICTION_PNG.format(video_id=v, frame_id=f)).is_file() for v, f in frames):
         return None
     return record
 
@@ -402,7 +407,7 @@ def run_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out:
     evaluator = SegmentationEvaluator(n_boot=options.n_boot, seed=options.seed)
     t0 = time.perf_counter()
     for vid, f in tqdm(written, desc=f"{name} fold {fold}: score", unit="frame", disable=not progress):
-        evaluator.process(vid, f, read_inst(staging / f"{vid}/{f:06d}.png"), gts[vid, f])
+        evaluator.process(vid, f, read_inst(staging / PREDICTION_PNG.format(video_id=vid, frame_id=f)), gts[vid, f])
     score_s = time.perf_counter() - t0
     result = evaluator.evaluate()
 

@@ -1,7 +1,7 @@
 """``evaluate3d``: Table II, the 3-D segmentations of the reconstructed scenes scored against GT points.
 
     evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
-               [--rows lccp,lccp+symseg,ours-matching] [--quiet]
+               [--rows lccp,lccp+symseg,ours-matching] [--quiet] [--executor local|ray] [--ray-address ADDR]
 
 Rows (each a result record with ``task = "3d"``, named after the row):
 
@@ -43,7 +43,7 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, provenance, write_result
-from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
+from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
 from selfseg.fileio import FileFormatError, read_json
 from selfseg.method.overseg import oversegment
 from selfseg.method.pipeline import Ours, OursConfig
@@ -102,7 +102,8 @@ def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROW
                    executor: cf.Executor | None = None) -> tuple[list[SceneSegmentations], dict[str, float]]:
     """Run the pipeline on every video of ``dataset`` without ground truth; returns the labels of each
     requested row and the seconds spent per step in this run (cached stages cost ~0). ``executor`` runs
-    the matching and registration tasks (e.g. Ray); None: a local process pool."""
+    the per-video stages, matching and registration tasks (e.g. Ray); None: the stages in this process,
+    matching and registrations in a local process pool."""
     videos = [dataset.video(v) for v in dataset.video_ids]
     method = Ours(config, workdir)
     method.executor = executor
@@ -256,10 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
     p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
-    p.add_argument("--executor", default="local", help=f"where matching and registrations run: {' or '.join(EXECUTORS)} "
-                   "(default local: a process pool)")
-    p.add_argument("--ray-address", default=None, help="with --executor ray: 'auto' or HOST:PORT of a running cluster "
-                   "(default: start a Ray instance with this machine's CPUs for the run)")
+    add_executor_arguments(p, "per-video stages (reconstruction, over-segmentation), matching and registrations")
     return p
 
 
@@ -269,10 +267,12 @@ def main(argv: list[str] | None = None) -> int:
         dataset = Dataset(args.data)
         config = load_config(OursConfig, args.config, args.overrides)
         rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
-        if args.executor == "local" and args.ray_address is None:
+        where = executor_config(args, args.config)
+        if not where.distributed:
             records = run_table2(dataset, config, args.out, rows, progress=not args.quiet)
         else:
-            with make_executor(args.executor, args.ray_address, os.cpu_count() or 1) as executor:
+            with make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
+                               num_gpus=where.ray_gpus_per_task) as executor:
                 args.out.mkdir(parents=True, exist_ok=True)
                 check_shared_folder(executor, args.out)
                 records = run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=executor)

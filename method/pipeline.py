@@ -27,6 +27,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import os
 from dataclasses import dataclass, field
+from itertools import repeat
 from pathlib import Path
 from typing import Literal
 
@@ -34,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import to_dict
-from selfseg.dataset import Video, read_inst, write_inst
+from selfseg.dataset import Video, ground_truth_forbidden, read_inst, write_inst
 from selfseg.fileio import hash_json, read_json, write_json
 from selfseg.method.background import BackgroundConfig
 from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConfig, video_key
@@ -128,6 +129,13 @@ def run_overseg_stage(video: Video, cache: StageCache, cfg: OursConfig, progress
     return cache.path("overseg", video.video_id)
 
 
+def overseg_task(video: Video, cache: StageCache, cfg: OursConfig) -> Path:
+    """:func:`run_overseg_stage` as one executor task (another process or node): quiet, with the video's
+    dataset guarded there too (the self-supervised path never reads ground truth)."""
+    with ground_truth_forbidden(video.root):
+        return run_overseg_stage(video, cache, cfg, progress=False)
+
+
 def _map_loader(folder_of: dict[str, Path]):
     """Label loader for :class:`FrameLabelSource`: reads ``folder_of[video_id]/{fid:06d}.png``."""
     def load(video: Video, fid: int) -> np.ndarray:
@@ -140,7 +148,8 @@ class Ours(EmbeddingMethodBase):
 
     name = "ours"
     config_cls = OursConfig
-    # where matching and registrations fan out (evaluate3d --executor ray); None: a local process pool
+    # where per-video stages, matching and registrations fan out (evaluate3d --executor ray); None: the
+    # per-video stages one after the other in this process, matching and registrations in a local process pool
     executor: cf.Executor | None = None
 
     def stage_cache(self, videos: list[Video]) -> StageCache:
@@ -157,8 +166,14 @@ class Ours(EmbeddingMethodBase):
     def run_overseg(self, videos: list[Video]) -> StageCache:
         """Reconstruct and over-segment every video (per-video stages, cached); returns the stage cache."""
         cache = self.stage_cache(videos)
-        for v in tqdm(videos, desc=f"{self.name}: reconstruct + over-segment", unit="video"):
-            run_overseg_stage(v, cache, self.config)
+        desc = f"{self.name}: reconstruct + over-segment"
+        if self.executor is None:
+            for v in tqdm(videos, desc=desc, unit="video"):
+                run_overseg_stage(v, cache, self.config)
+        else:  # one task per video; each writes its own stage folders (atomically, the first writer wins)
+            for _ in tqdm(self.executor.map(overseg_task, videos, repeat(cache), repeat(self.config)), desc=desc,
+                          unit="video", total=len(videos)):
+                pass
         return cache
 
     def train_phi1(self, videos: list[Video], cache: StageCache) -> Path:

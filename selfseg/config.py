@@ -166,22 +166,34 @@ def _merge(base: dict, extra: dict) -> dict:
     return out
 
 
+# Top-level YAML sections about how a command runs, not what it computes (e.g. ``executor:``, see
+# :mod:`selfseg.executor`): never part of a config, so they change no hash; read them with :func:`load_section`.
+RUN_SECTIONS = ("executor",)
+
+
+def _read_yaml(p: Path) -> dict:
+    """The mapping in YAML file ``p``; ConfigError naming the file if it is missing or not a mapping."""
+    try:
+        loaded = yaml.safe_load(p.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML ({e})") from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{p}: a config file must hold a mapping")
+    return loaded
+
+
 def load_config(cls: type[T], path: str | os.PathLike | None = None, overrides: Iterable[str] = (),
                 base: dict | None = None) -> T:
-    """Defaults of ``cls`` ← ``base`` ← YAML file ``path`` ← ``key=value`` overrides, type-checked."""
+    """Defaults of ``cls`` ← ``base`` ← YAML file ``path`` (less its :data:`RUN_SECTIONS`) ← ``key=value``
+    overrides, type-checked."""
     data = to_dict(cls())
     if base:
         data = _merge(data, base)
     if path is not None:
         p = Path(path)
-        try:
-            loaded = yaml.safe_load(p.read_text()) or {}
-        except FileNotFoundError:
-            raise ConfigError(f"{p}: config file not found") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{p}: not valid YAML ({e})") from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{p}: a config file must hold a mapping")
+        loaded = {k: v for k, v in _read_yaml(p).items() if k not in RUN_SECTIONS}
         try:
             from_dict(cls, _merge(data, loaded))  # validate the file alone, to name it in errors
         except ConfigError as e:
@@ -189,3 +201,15 @@ def load_config(cls: type[T], path: str | os.PathLike | None = None, overrides: 
         data = _merge(data, loaded)
     data = _merge(data, parse_overrides(overrides))
     return from_dict(cls, data)
+
+
+def load_section(cls: type[T], path: str | os.PathLike | None, section: str) -> T:
+    """The run section ``section`` (one of :data:`RUN_SECTIONS`) of YAML file ``path`` as ``cls``: defaults
+    for keys it leaves out, ConfigError naming the file for unknown keys or bad values."""
+    if path is None:
+        return cls()
+    p = Path(path)
+    try:
+        return from_dict(cls, _read_yaml(p).get(section) or {}, section)
+    except ConfigError as e:
+        raise ConfigError(f"{p}: {e}") from None

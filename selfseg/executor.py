@@ -12,14 +12,18 @@ has one task write a probe file there and the driver read it back.
 """
 from __future__ import annotations
 
+import argparse
 import concurrent.futures as cf
 import logging
 import os
 import pickle
 import socket
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
+
+from selfseg.config import load_section
 
 EXECUTORS = ("local", "ray")
 PROBE_PREFIX = ".selfseg-probe-"
@@ -29,6 +33,54 @@ CONNECT_TIMEOUT_S = 5.0  # an unreachable --ray-address fails after this, not af
 
 class ExecutorError(ValueError):
     """Bad executor choice, unreachable cluster, or an output folder the workers cannot see."""
+
+
+@dataclass
+class ExecutorConfig:
+    """Where a command's fan-outs run: the ``executor:`` section of its YAML config (not part of the method's
+    config or hashes: results do not depend on it), overridden by the command-line flags."""
+
+    kind: str = "local"  # local (process pools; no Ray) | ray
+    ray_address: str | None = None  # None: start a private Ray instance with this machine's CPUs; auto | HOST:PORT
+    ray_cpus_per_task: float = 1  # CPUs each Ray task reserves
+    ray_gpus_per_task: float = 0  # GPUs each Ray task reserves (Cycles on GPU, network training)
+
+    def __post_init__(self):
+        if self.kind not in EXECUTORS:
+            raise ValueError(f"kind must be one of {', '.join(EXECUTORS)}, got {self.kind!r}")
+
+    @property
+    def distributed(self) -> bool:
+        """False for plain local runs (today's behaviour: nothing of Ray is imported)."""
+        return self.kind != "local" or self.ray_address is not None
+
+
+def add_executor_arguments(p: argparse.ArgumentParser, what: str) -> None:
+    """``--executor``, ``--ray-address``, ``--ray-cpus-per-task``, ``--ray-gpus-per-task``; ``what`` says which
+    work runs as tasks. Flags left out take the YAML config's ``executor:`` section, then the defaults."""
+    p.add_argument("--executor", help=f"where {what} run: {' or '.join(EXECUTORS)} (default local; also the "
+                   "YAML config's executor.kind)")
+    p.add_argument("--ray-address", help="with --executor ray: 'auto' or HOST:PORT of a running cluster (default: "
+                   "start a Ray instance with this machine's CPUs for the run); outputs must be on a shared filesystem")
+    p.add_argument("--ray-cpus-per-task", type=float, help="CPUs each Ray task reserves (default 1)")
+    p.add_argument("--ray-gpus-per-task", type=float, help="GPUs each Ray task reserves (default 0)")
+
+
+def executor_config(args: argparse.Namespace, config_path: str | os.PathLike | None) -> ExecutorConfig:
+    """The flags of :func:`add_executor_arguments` over the ``executor:`` section of ``config_path`` over the
+    defaults. Raises ExecutorError for a bad kind or task size (ConfigError for a bad YAML section)."""
+    cfg = load_section(ExecutorConfig, config_path, "executor")
+    for flag, field in (("executor", "kind"), ("ray_address", "ray_address"),
+                        ("ray_cpus_per_task", "ray_cpus_per_task"), ("ray_gpus_per_task", "ray_gpus_per_task")):
+        if getattr(args, flag) is not None:
+            setattr(cfg, field, getattr(args, flag))
+    if cfg.kind not in EXECUTORS:
+        raise ExecutorError(f"--executor must be one of {', '.join(EXECUTORS)}, got {cfg.kind!r}")
+    if cfg.kind == "local" and cfg.ray_address is not None:
+        raise ExecutorError("--ray-address needs --executor ray")
+    if cfg.ray_cpus_per_task <= 0 or cfg.ray_gpus_per_task < 0:
+        raise ExecutorError("--ray-cpus-per-task must be > 0 and --ray-gpus-per-task ≥ 0")
+    return cfg
 
 
 def _check_address(address: str) -> None:
