@@ -56,6 +56,7 @@ FRAMES_JSONL = "scores/{dataset}/{name}/fold{fold}.frames.jsonl"
 PREDICTIONS_DIR = "predictions/{name}/{dataset}"
 PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"  # one frame's instance map in PREDICTIONS_DIR (and in `external`'s input)
 WORK_DIR = "work/{name}/{dataset}/fold{fold}"
+STAGES_DIR = "work/_stages"  # per-video stage caches shared by every run and fold in OUT (methods' stage_root)
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
 VERSIONED_PACKAGES = ("selfseg", "numpy", "scipy", "torch", "open3d-cpu", "opencv-python-headless", "trimesh")
@@ -229,9 +230,10 @@ def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_al
             if request[0] == "stop":
                 break
             if request[0] == "start":
-                method_cls, config, workdir, view_root, poses_given = pickle.loads(payload)
+                method_cls, config, workdir, stage_root, view_root, poses_given = pickle.loads(payload)
                 view = Dataset(view_root)
                 method = method_cls(config, workdir)
+                method.stage_root = stage_root
                 open_video = (lambda v: view.labeled(v)) if gt_allowed else (lambda v: view.video(v, poses_given))
                 reply = None
             elif request[0] == "fit":
@@ -271,7 +273,8 @@ class MethodSandbox:
         self.attempts: list[str] = []
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        payload = pickle.dumps((method_cls, config, workdir, str(self.root.resolve()), poses_given))
+        stage_root = (Path(out) / STAGES_DIR).resolve()
+        payload = pickle.dumps((method_cls, config, workdir, stage_root, str(self.root.resolve()), poses_given))
         identities = [dataset_identity(dataset.root), dataset_identity(self.root)]
         self._proc = ctx.Process(target=_sandbox_main, args=(child, payload, identities, gt_allowed),
                                  name=f"selfseg-{self.name}")  # not daemonic: it may try to start children

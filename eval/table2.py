@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import dataclasses
 import os
 import sys
 import time
@@ -42,37 +41,16 @@ from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, Labe
 from selfseg.eval.aggregate import fmt
 from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
-from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, provenance, write_result
+from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
 from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
-from selfseg.fileio import FileFormatError, read_json
-from selfseg.method.overseg import oversegment
-from selfseg.method.pipeline import Ours, OursConfig
-from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
-from selfseg.method.recon_stage import ReconStage, load_recon
-from selfseg.method.segment_graph import SegmentGraph
+from selfseg.fileio import FileFormatError
+from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
+from selfseg.method.recon_stage import ReconStage
 
-ROWS = ("lccp", "lccp+symseg", "ours-matching")
+ROWS = ROWS_3D
 FOLD = "all"  # one collection of every video: no labels are used, so there are no folds
 TABLE_KEYS = ("P", "R", "IoU", "overlap_P", "overlap_R", "overlap_F")
 DRIFT_KEYS = ("drift_pos_mean_m", "drift_pos_max_m", "drift_rot_mean_deg")
-
-
-@dataclasses.dataclass
-class SceneSegmentations:
-    """One video's reconstructed object points and each row's per-point labels (−1 = none)."""
-
-    video_id: str
-    recon: ReconStage
-    labels: dict[str, np.ndarray]
-    graph: SegmentGraph | None = None  # the over-segmentation (with the ours-matching row)
-    pseudo_dir: Path | None = None  # the pseudo stage folder (with the ours-matching row)
-
-
-def row_config(config: OursConfig, row: str) -> OursConfig:
-    """The pipeline config a row's labels come from (``lccp``: SymSeg off)."""
-    if row == "lccp":
-        return dataclasses.replace(config, overseg=dataclasses.replace(config.overseg, use_symseg=False))
-    return config
 
 
 def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dict]:
@@ -98,64 +76,36 @@ def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dic
                "drift_rot_mean_deg": float(np.mean(rot))}
 
 
-def segment_scenes(dataset: Dataset, config: OursConfig, workdir: Path, rows=ROWS, progress: bool = True,
-                   executor: cf.Executor | None = None) -> tuple[list[SceneSegmentations], dict[str, float]]:
-    """Run the pipeline on every video of ``dataset`` without ground truth; returns the labels of each
-    requested row and the seconds spent per step in this run (cached stages cost ~0). ``executor`` runs
-    the per-video stages, matching and registration tasks (e.g. Ray); None: the stages in this process,
-    matching and registrations in a local process pool."""
-    videos = [dataset.video(v) for v in dataset.video_ids]
-    method = Ours(config, workdir)
+def segment_scenes(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, executor: cf.Executor | None = None
+                   ) -> Segmentations3D:
+    """The pipeline's 3-D segmentations of every video of ``dataset`` (:meth:`Ours.segment_3d`), asked for
+    with the dataset's ground truth guarded; its stages live in ``out``'s evaluate layout (shared with
+    ``evaluate --method ours`` runs there). ``executor`` runs the per-video stages, matching and registration
+    tasks (e.g. Ray); None: the stages in this process, matching and registrations in a local process pool."""
+    method = Ours(config, Path(out) / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD))
+    method.stage_root = Path(out) / STAGES_DIR
     method.executor = executor
-    seconds: dict[str, float] = {}
     with ground_truth_forbidden(dataset.root):
-        t0 = time.perf_counter()
-        cache = method.run_overseg(videos)
-        seconds["recon_overseg_s"] = time.perf_counter() - t0
-        scenes = [SceneSegmentations(v.video_id, load_recon(cache.path("recon", v.video_id)), {}) for v in videos]
-        for s in scenes:
-            if "lccp+symseg" in rows:
-                s.labels["lccp+symseg"] = SegmentGraph.load(cache.path("overseg", s.video_id) / "segments.npz").labels
-        if "lccp" in rows:
-            t0 = time.perf_counter()
-            cfg = row_config(config, "lccp").overseg
-            for s in tqdm(scenes, desc="LCCP without SymSeg", unit="video", disable=not progress):
-                # VCCS colour distances use 0–255 like PCL (as in the overseg stage)
-                s.labels["lccp"] = oversegment(s.recon.points_w, s.recon.normals_w, s.recon.colors * 255.0,
-                                               s.recon.occupancy, cfg)
-            seconds["lccp_s"] = time.perf_counter() - t0
-        if "ours-matching" in rows:
-            t0 = time.perf_counter()
-            phi1 = method.train_phi1(videos, cache)
-            seconds["phi1_s"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            pseudo = method.pseudo_labels(videos, cache, phi1)
-            seconds["pseudo_s"] = time.perf_counter() - t0
-            for s in scenes:
-                s.labels["ours-matching"] = np.load(pseudo / "labels" / f"{s.video_id}.npy")
-                s.graph = SegmentGraph.load(cache.path("overseg", s.video_id) / "segments.npz")
-                s.pseudo_dir = pseudo
-    return scenes, seconds
+        return method.segment_3d([dataset.video(v) for v in dataset.video_ids], rows)
 
 
-def matching_record(dataset: Dataset, scenes: list[SceneSegmentations], gt_inst: dict[str, np.ndarray]) -> dict:
-    """The matching step's diagnostics (``diagnostics.json``) with its ground-truth scores: merge
-    precision/recall and the φ1 cosine of same- vs different-object segment pairs across scenes
-    (:mod:`selfseg.eval.merges`). ``gt_inst``: GT instance per reconstructed point, per video."""
-    diag = read_json(scenes[0].pseudo_dir / DIAGNOSTICS_JSON)
+def matching_record(dataset: Dataset, seg: Segmentations3D, gt_inst: dict[str, np.ndarray]) -> dict:
+    """The matching step's diagnostics with its ground-truth scores: merge precision/recall and the φ1 cosine
+    of same- vs different-object segment pairs across scenes (:mod:`selfseg.eval.merges`). ``gt_inst``: GT
+    instance per reconstructed point, per video."""
     seg_inst, inst_obj, seg_object, edges, feats = {}, {}, {}, {}, {}
-    for s in scenes:
+    for s in seg.scenes:
         n = len(s.graph.sizes)
-        seg = np.asarray(s.graph.labels)
-        seg_inst[s.video_id] = segment_instances(seg, gt_inst[s.video_id], n)
+        labels = np.asarray(s.graph.labels)
+        seg_inst[s.video_id] = segment_instances(labels, gt_inst[s.video_id], n)
         inst_obj[s.video_id] = dataset.labeled(s.video_id).instance_to_object()
         obj = np.full(n, -1, np.int64)
-        obj[seg[seg >= 0]] = s.labels["ours-matching"][seg >= 0]
+        obj[labels[labels >= 0]] = s.labels["ours-matching"][labels >= 0]
         seg_object[s.video_id] = obj
         edges[s.video_id] = np.asarray(s.graph.edges)
-        feats[s.video_id] = np.load(s.pseudo_dir / "features" / f"{s.video_id}.npy")
-    return {**diag, "gt": {**merge_scores(diag, seg_inst, inst_obj, seg_object, edges),
-                           "cosine": cosine_by_object(feats, seg_inst, inst_obj)}}
+        feats[s.video_id] = s.features
+    return {**seg.diagnostics, "gt": {**merge_scores(seg.diagnostics, seg_inst, inst_obj, seg_object, edges),
+                                      "cosine": cosine_by_object(feats, seg_inst, inst_obj)}}
 
 
 def format_matching(m: dict) -> str:
@@ -194,9 +144,8 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
     out = Path(out)
-    workdir = out / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD)
-    workdir.mkdir(parents=True, exist_ok=True)
-    scenes, seconds = segment_scenes(dataset, config, workdir, rows, progress, executor)
+    seg = segment_scenes(dataset, config, out, rows, executor)
+    scenes, seconds = seg.scenes, seg.seconds
 
     aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in scenes}
     n_frames = sum(len(s.recon.frame_ids) for s in scenes)
@@ -213,7 +162,7 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
         score_s = time.perf_counter() - t0
         fit_s = _row_seconds(row, seconds)
         record = {
-            **provenance(Ours.name, row, row_config(config, row), dataset, "3d"),
+            **provenance(Ours.name, row, lccp_only(config) if row == "lccp" else config, dataset, "3d"),
             "fold": FOLD,
             "n_folds": 1,
             "train_videos": list(dataset.video_ids),
@@ -229,7 +178,7 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
             gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
                                                    s.video_id, max_dist_m, None if models is None else models[s.video_id])
                        for s in scenes}
-            record["matching"] = matching_record(dataset, scenes, gt_inst)
+            record["matching"] = matching_record(dataset, seg, gt_inst)
         write_result(out, record, ev.records)
         records.append(record)
     return records

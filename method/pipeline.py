@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import os
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from itertools import repeat
 from pathlib import Path
 from typing import Literal
@@ -41,12 +42,24 @@ from selfseg.method.background import BackgroundConfig
 from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConfig, video_key
 from selfseg.method.overseg import OversegConfig, oversegment
 from selfseg.method.projection import project_labels
-from selfseg.method.pseudolabels import PseudoLabelConfig, SceneData, make_pseudo_labels
+from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, PseudoLabelConfig, SceneData, make_pseudo_labels
 from selfseg.method.reconstruct import ReconConfig
-from selfseg.method.recon_stage import load_recon, run_recon_stage
+from selfseg.method.recon_stage import ReconStage, load_recon, run_recon_stage
 from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
 from selfseg.method.train import FrameLabelSource, TrainConfig, load_embedding_net, train_embedding
-from selfseg.stages import StageCache
+from selfseg.stages import STAGE_FILE, StageCache
+
+# Files of the stages this module owns (recon's are in selfseg.method.recon_stage), relative to the stage folder.
+SEGMENTS_NPZ = "segments.npz"  # overseg: the segment graph (segment per reconstructed point, −1 = none; edges; sizes)
+SEGMAPS_DIR = "segmaps"  # overseg: the segments projected into every frame (LABEL_MAP_PNG files)
+OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts
+PHI1_DIR = "phi1/{key_hash}"  # in the stage root: φ1 trained on the over-segments of a set of videos
+FEATURES_NPY = "features/{video_id}.npy"  # pseudo: φ1 feature per segment (n_segments × D, unit vectors)
+LABELS_NPY = "labels/{video_id}.npy"  # pseudo: object pseudo-label per reconstructed point (−1 = none)
+PSEUDO_MAPS_DIR = "maps/{video_id}"  # pseudo: the pseudo-labels projected into every frame (LABEL_MAP_PNG files)
+PSEUDO_CACHE_DIR = "pseudo"  # in the method's workdir: the pseudo stage (one per set of training videos)
+LABEL_MAP_PNG = "{frame_id:06d}.png"  # one frame's label map in SEGMAPS_DIR or PSEUDO_MAPS_DIR (uint16, 0 = none)
+ROWS_3D = ("lccp", "lccp+symseg", "ours-matching")  # the 3-D segmentations :meth:`Ours.segment_3d` gives (Table II)
 
 STAGE_VERSION = 3  # bump when a stage's output format or algorithm changes (2: cloud-anchored supervoxel grids; 3: diagnostics.json)
 
@@ -72,7 +85,7 @@ class OursConfig(EmbeddingMethodConfig):
     feature_stride: int = 5  # φ1 segment features average every n-th frame
     pseudo: PseudoLabelConfig = field(default_factory=PseudoLabelConfig)
     labels: Literal["pseudo", "overseg"] = "pseudo"  # "overseg": V2, φ2 = φ1 trained on LCCP labels
-    stage_dir: str = ""  # per-video stage cache; "" = OUT/work/_stages/<dataset folder>-<path hash> (stage_cache)
+    stage_dir: str = ""  # per-video stage cache; "" = <stage root>/<dataset folder>-<path hash> (see stage_cache)
 
 
 @dataclass
@@ -88,6 +101,34 @@ class OursV3Config(OursConfig):
 @dataclass
 class OursV4Config(OursConfig):
     pseudo: PseudoLabelConfig = field(default_factory=lambda: PseudoLabelConfig(mode="v4_registration_only"))
+
+
+@dataclass
+class Segmentation3D:
+    """One video's reconstruction (object points in its world frame, metres) and the per-point labels of
+    each requested Table II row (−1 = none), with its segment graph and φ1 segment features (``features``:
+    n_segments × D, only with the ``ours-matching`` row)."""
+
+    video_id: str
+    recon: ReconStage
+    labels: dict[str, np.ndarray]
+    graph: SegmentGraph
+    features: np.ndarray | None = None
+
+
+@dataclass
+class Segmentations3D:
+    """:meth:`Ours.segment_3d`'s answer: every video's segmentations, the matching step's diagnostics
+    (``ours-matching`` only) and the seconds each step took in this call (cached stages cost ~0)."""
+
+    scenes: list[Segmentation3D]
+    diagnostics: dict | None
+    seconds: dict[str, float]
+
+
+def lccp_only(config: OursConfig) -> OursConfig:
+    """The config of the ``lccp`` row: the pipeline's, with SymSeg off."""
+    return replace(config, overseg=replace(config.overseg, use_symseg=False))
 
 
 def read_label_map(path: str | Path) -> np.ndarray:
@@ -106,7 +147,7 @@ def write_label_maps(out_dir: Path, video: Video, points_w: np.ndarray, labels: 
             continue
         m = project_labels(pts, lab, video.K(fid), T_world_cam[fid], video.width, video.height,
                            depth_m=video.depth_m(fid), depth_tol_m=cfg.depth_tol_m, splat_px=cfg.splat_px)
-        write_inst(out_dir / f"{fid:06d}.png", (m + 1).astype(np.uint16))
+        write_inst(out_dir / LABEL_MAP_PNG.format(frame_id=fid), (m + 1).astype(np.uint16))
 
 
 def run_overseg_stage(video: Video, cache: StageCache, cfg: OursConfig, progress: bool = True) -> Path:
@@ -122,9 +163,9 @@ def run_overseg_stage(video: Video, cache: StageCache, cfg: OursConfig, progress
     labels = oversegment(rec.points_w, rec.normals_w, rec.colors * 255.0, rec.occupancy, cfg.overseg)
     graph = build_segment_graph(rec.points_w, labels, cfg.adjacency_radius_m)
     with cache.write("overseg", video.video_id, key) as tmp:
-        graph.save(tmp / "segments.npz")
-        write_label_maps(tmp / "segmaps", video, rec.points_w, labels, rec.T_world_cam, cfg.projection, progress)
-        write_json(tmp / "report.json", {"n_points": len(labels), "n_segments": graph.n_segments,
+        graph.save(tmp / SEGMENTS_NPZ)
+        write_label_maps(tmp / SEGMAPS_DIR, video, rec.points_w, labels, rec.T_world_cam, cfg.projection, progress)
+        write_json(tmp / OVERSEG_REPORT_JSON, {"n_points": len(labels), "n_segments": graph.n_segments,
                                          "n_edges": len(graph.edges), "n_components": len(graph.components())})
     return cache.path("overseg", video.video_id)
 
@@ -139,7 +180,7 @@ def overseg_task(video: Video, cache: StageCache, cfg: OursConfig) -> Path:
 def _map_loader(folder_of: dict[str, Path]):
     """Label loader for :class:`FrameLabelSource`: reads ``folder_of[video_id]/{fid:06d}.png``."""
     def load(video: Video, fid: int) -> np.ndarray:
-        return read_label_map(folder_of[video.video_id] / f"{fid:06d}.png")
+        return read_label_map(folder_of[video.video_id] / LABEL_MAP_PNG.format(frame_id=fid))
     return load
 
 
@@ -153,15 +194,17 @@ class Ours(EmbeddingMethodBase):
     executor: cf.Executor | None = None
 
     def stage_cache(self, videos: list[Video]) -> StageCache:
+        """The per-video stage cache of ``videos``' dataset: ``config.stage_dir`` if set, else
+        ``<stage root>/<dataset folder>-<path hash>`` (stage root: :attr:`stage_root`, which the harness passes
+        in, else ``workdir/_stages``). Stage keys hold the dataset's path, so the method's unlabeled view and
+        evaluate3d's real dataset (same folder name) get separate caches instead of rebuilding each other's."""
         if self.config.stage_dir:
             return StageCache(self.config.stage_dir)
-        if self.workdir is None:
-            raise ValueError(f"method {self.name!r} needs a workdir or config stage_dir for its stage cache")
-        # workdir is OUT/work/<run>/<dataset>/fold<k>: share OUT/work/_stages/<dataset>-<path hash> across runs
-        # and folds. Stage keys hold the dataset's path, so the method's unlabeled view and evaluate3d's real
-        # dataset (same folder name) get separate caches instead of rebuilding each other's stages.
+        if self.stage_root is None and self.workdir is None:
+            raise ValueError(f"method {self.name!r} needs a stage root, a workdir or config stage_dir for its stages")
+        base = self.stage_root if self.stage_root is not None else self.workdir / "_stages"
         root = videos[0].root
-        return StageCache(self.workdir.parents[2] / "_stages" / f"{root.name}-{hash_json(os.path.abspath(root), n=8)}")
+        return StageCache(Path(base) / f"{root.name}-{hash_json(os.path.abspath(root), n=8)}")
 
     def run_overseg(self, videos: list[Video]) -> StageCache:
         """Reconstruct and over-segment every video (per-video stages, cached); returns the stage cache."""
@@ -178,20 +221,21 @@ class Ours(EmbeddingMethodBase):
 
     def train_phi1(self, videos: list[Video], cache: StageCache) -> Path:
         """Train φ1 on the over-segment maps of ``videos`` (cached by settings and stage keys); returns its weights."""
-        segmaps = {v.video_id: cache.path("overseg", v.video_id) / "segmaps" for v in videos}
+        segmaps = {v.video_id: cache.path("overseg", v.video_id) / SEGMAPS_DIR for v in videos}
         source = FrameLabelSource([(v, f, _map_loader(segmaps)) for v in videos for f in self.training_frames(v)])
         key = {"phi1": to_dict(self.config.phi1_train), "net": to_dict(self.config.net),
                "frame_stride": self.config.frame_stride,
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
         # shared by folds and variants with the same training videos and settings
-        return train_embedding(source, self.config.phi1_train, self.config.net, cache.root / "phi1" / hash_json(key))
+        return train_embedding(source, self.config.phi1_train, self.config.net,
+                               cache.root / PHI1_DIR.format(key_hash=hash_json(key)))
 
     def pseudo_labels(self, videos: list[Video], cache: StageCache, phi1: Path) -> Path:
         """φ1 segment features, cross-scene matching and merged pseudo-labels of the training videos (cached)."""
         from selfseg.method.features import segment_features
 
         cfg = self.config
-        out = StageCache(self.workdir / "pseudo")
+        out = StageCache(self.workdir / PSEUDO_CACHE_DIR)
         key = {"version": STAGE_VERSION, "phi1": str(phi1), "pseudo": to_dict(cfg.pseudo),
                "feature_stride": cfg.feature_stride, "projection": to_dict(cfg.projection),
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
@@ -201,9 +245,9 @@ class Ours(EmbeddingMethodBase):
         scenes, recons = [], []
         for v in tqdm(videos, desc="φ1 segment features", unit="video"):
             seg_dir = cache.path("overseg", v.video_id)
-            graph = SegmentGraph.load(seg_dir / "segments.npz")
+            graph = SegmentGraph.load(seg_dir / SEGMENTS_NPZ)
             frames = v.frame_ids[::cfg.feature_stride]
-            segmaps = {f: read_label_map(seg_dir / "segmaps" / f"{f:06d}.png") for f in frames}
+            segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f)) for f in frames}
             feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
                                             image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
                                             fg_crop_margin=cfg.phi1_train.crop_margin)
@@ -211,21 +255,60 @@ class Ours(EmbeddingMethodBase):
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write("all", "scenes", key) as tmp:
             labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
-            (tmp / "features").mkdir()
-            (tmp / "labels").mkdir()
             for v, scene, rec in zip(videos, scenes, recons):
-                np.save(tmp / "features" / f"{v.video_id}.npy", scene.features)
-                np.save(tmp / "labels" / f"{v.video_id}.npy", labels[v.video_id])
-                write_label_maps(tmp / "maps" / v.video_id, v, scene.points_w, labels[v.video_id], rec.T_world_cam,
-                                 cfg.projection)
+                for template, array in ((FEATURES_NPY, scene.features), (LABELS_NPY, labels[v.video_id])):
+                    (tmp / template.format(video_id=v.video_id)).parent.mkdir(exist_ok=True)
+                    np.save(tmp / template.format(video_id=v.video_id), array)
+                write_label_maps(tmp / PSEUDO_MAPS_DIR.format(video_id=v.video_id), v, scene.points_w,
+                                 labels[v.video_id], rec.T_world_cam, cfg.projection)
         return out.path("all", "scenes")
 
     def label_source(self, train_videos: list[Video]):
         cache = self.run_overseg(train_videos)
         pseudo = self.pseudo_labels(train_videos, cache, self.train_phi1(train_videos, cache))
-        folders = {v.video_id: pseudo / "maps" / v.video_id for v in train_videos}
+        folders = {v.video_id: pseudo / PSEUDO_MAPS_DIR.format(video_id=v.video_id) for v in train_videos}
         source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)])
-        return source, {"pseudo": read_json(pseudo / "stage.json")["key_hash"]}
+        return source, {"pseudo": read_json(pseudo / STAGE_FILE)["key_hash"]}
+
+    def segment_3d(self, videos: list[Video], rows: tuple[str, ...] = ROWS_3D) -> Segmentations3D:
+        """The 3-D segmentations of ``videos`` (one unlabeled collection: φ1 and matching run over all of
+        them) that Table II scores, per video: the reconstruction and the per-point labels of each row in
+        ``rows`` (``lccp``: LCCP alone, re-run in memory on the cached reconstruction; ``lccp+symseg``: the
+        over-segmentation stage; ``ours-matching``: the object pseudo-labels after matching and pruning)."""
+        bad = [r for r in rows if r not in ROWS_3D]
+        if bad or not rows:
+            raise ValueError(f"rows: unknown row(s) {bad or list(rows)}; choose from {', '.join(ROWS_3D)}")
+        seconds: dict[str, float] = {}
+        t0 = time.perf_counter()
+        cache = self.run_overseg(videos)
+        seconds["recon_overseg_s"] = time.perf_counter() - t0
+        scenes = []
+        for v in videos:
+            graph = SegmentGraph.load(cache.path("overseg", v.video_id) / SEGMENTS_NPZ)
+            scenes.append(Segmentation3D(v.video_id, load_recon(cache.path("recon", v.video_id)), {}, graph))
+            if "lccp+symseg" in rows:
+                scenes[-1].labels["lccp+symseg"] = graph.labels
+        if "lccp" in rows:
+            t0 = time.perf_counter()
+            cfg = lccp_only(self.config).overseg
+            for s in tqdm(scenes, desc="LCCP without SymSeg", unit="video"):
+                # VCCS colour distances use 0–255 like PCL (as in the overseg stage)
+                s.labels["lccp"] = oversegment(s.recon.points_w, s.recon.normals_w, s.recon.colors * 255.0,
+                                               s.recon.occupancy, cfg)
+            seconds["lccp_s"] = time.perf_counter() - t0
+        diagnostics = None
+        if "ours-matching" in rows:
+            t0 = time.perf_counter()
+            phi1 = self.train_phi1(videos, cache)
+            seconds["phi1_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            pseudo = self.pseudo_labels(videos, cache, phi1)
+            seconds["pseudo_s"] = time.perf_counter() - t0
+            for s in scenes:
+                s.labels["ours-matching"] = np.load(pseudo / LABELS_NPY.format(video_id=s.video_id))
+                s.features = np.load(pseudo / FEATURES_NPY.format(video_id=s.video_id))
+            diagnostics = read_json(pseudo / DIAGNOSTICS_JSON)
+        return Segmentations3D(scenes, diagnostics, seconds)
 
     def network_train_config(self) -> TrainConfig:
         return self.config.phi1_train if self.config.labels == "overseg" else self.config.train

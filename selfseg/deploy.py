@@ -76,8 +76,8 @@ def train_model(method: str, data: Path, out: Path, config_path: Path | None = N
         dataset.video(v)  # unknown ids: one clear error
     if (out / MODEL_JSON).is_file():
         raise FileExistsError(f"{out}: a model already exists; choose another --out or delete it")
-    # Ours keeps per-video stages in workdir.parents[2]/_stages: here <out>.work/_stages/<dataset folder>-<hash>
     m = cls(config, Path(f"{out}.work") / "train" / dataset.name / "all")
+    m.stage_root = Path(f"{out}.work") / "_stages"  # per-video stages: <out>.work/_stages/<dataset folder>-<hash>
     with ground_truth_forbidden(dataset.root):
         m.fit([dataset.video(v) for v in ids])
     with atomic_dir(out) as tmp:

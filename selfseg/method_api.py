@@ -35,6 +35,9 @@ class Method:
     config_cls: ClassVar[type] = NoConfig
     needs_ground_truth: ClassVar[bool] = False  # True: fit/segment get LabeledVideo objects
     needs_fit: ClassVar[bool] = False
+    # A folder shared by every run and fold on the same outputs, where a method may cache per-video work (e.g.
+    # reconstructions). The harness passes it in before ``fit`` (``evaluate``: OUT/work/_stages); None: use workdir.
+    stage_root: Path | None = None
 
     def __init__(self, config=None, workdir: str | Path | None = None):
         self.config = config if config is not None else self.config_cls()

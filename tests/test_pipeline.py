@@ -35,9 +35,11 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
     ds = Dataset(dense_dataset)
     cfg = load_config(OursConfig, overrides=FAST)
     work = tmp_path / "work" / "ours" / "analytic" / "fold0"
+    stage_root = tmp_path / "work" / "_stages"  # passed in by the harness, shared by every run and fold
     train = [ds.video(v) for v in ds.video_ids[:2]]
     with ground_truth_forbidden(dense_dataset):  # the whole self-supervised path runs under the guard
         method = Ours(cfg, work)
+        method.stage_root = stage_root
         method.fit(train)
     labeled = ds.labeled("000002")
     fg = labeled.inst(0) > 0
@@ -45,8 +47,8 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
         pred = method.segment(ds.video("000002"), 0, fg)
     assert pred.shape == fg.shape and (pred[fg] > 0).all() and (pred[~fg] == 0).all()
 
-    stages = method.stage_cache(train).root  # shared by every run and fold
-    assert stages.parent == tmp_path / "work" / "_stages" and stages.name.startswith(dense_dataset.name + "-")
+    stages = method.stage_cache(train).root
+    assert stages.parent == stage_root and stages.name.startswith(dense_dataset.name + "-")
     for vid in ds.video_ids[:2]:
         inst = ds.labeled(vid).inst(10)
         seg = read_label_map(stages / "overseg" / vid / "segmaps" / "000010.png")
@@ -59,6 +61,7 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
     # a re-run reuses every cached stage and network
     before = {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")}
     again = Ours(cfg, work)
+    again.stage_root = stage_root
     with ground_truth_forbidden(dense_dataset):
         again.fit(train)
     assert len(before) == 4 and {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
@@ -66,6 +69,7 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
 
     # V2 shares the per-video stages and uses φ1 as its final network
     v2 = OursV2(load_config(OursV2Config, overrides=FAST), tmp_path / "work" / "ours-v2" / "analytic" / "fold0")
+    v2.stage_root = stage_root
     with ground_truth_forbidden(dense_dataset):
         v2.fit(train)
     assert v2.weights_path.parent.parent.name == "phi1"  # φ1 from the shared cache, not retrained

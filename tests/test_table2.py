@@ -98,8 +98,7 @@ def test_table2_rows_alignment_and_leaderboard(tmp_path):
     assert "merges within scenes" in format_matching(m)
 
     # the alignment matters: scoring the first-camera-frame cloud as if it were the dataset's frame fails
-    workdir = out / WORK_DIR.format(name="ours", dataset=ds.name, fold=FOLD)
-    scenes_seg, _ = segment_scenes(ds, cfg, workdir, ("lccp+symseg",), progress=False)  # cached: reloads labels
+    scenes_seg = segment_scenes(ds, cfg, out, ("lccp+symseg",)).scenes  # cached: reloads labels
     for s in scenes_seg:
         T, drift = alignment(s.recon, ds.labeled(s.video_id))
         assert drift["drift_pos_mean_m"] < 0.03  # camera positions; the cloud itself is anchored at f0
