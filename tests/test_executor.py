@@ -259,10 +259,11 @@ def _fold_records(out: Path) -> dict[str, dict]:
             for p in sorted((out / "scores").rglob("fold*.json"))}
 
 
-def test_evaluate_folds_on_ray_equal_local(tiny_dataset, tmp_path):
+@pytest.mark.parametrize("method", ["depth-clustering", "lccp-frame"])
+def test_evaluate_folds_on_ray_equal_local(tiny_dataset, tmp_path, method):
     """evaluate --executor ray: each fold is a Ray task (method sandbox, scoring, files) and gives the local
     run's records, frame scores and predictions."""
-    args = ["--method", "depth-clustering", "--data", str(tiny_dataset), "--quiet"]
+    args = ["--method", method, "--data", str(tiny_dataset), "--quiet"]
     assert evaluate([*args, "--out", str(tmp_path / "local")]) == 0
     assert evaluate([*args, "--out", str(tmp_path / "ray"), "--executor", "ray"]) == 0
     local, on_ray = _fold_records(tmp_path / "local"), _fold_records(tmp_path / "ray")
