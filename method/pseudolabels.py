@@ -42,7 +42,9 @@ from selfseg.method.registration import precision_recall
 from selfseg.method.segment_graph import SegmentGraph
 
 
-DIAGNOSTICS_JSON = "diagnostics.json"
+# Files written to make_pseudo_labels' out_dir.
+MATCHES_JSON = "matches.json"  # every non-empty match: maps, J, T1, registration, node decisions; merged groups
+DIAGNOSTICS_JSON = "diagnostics.json"  # what matching and pruning did, stage by stage (:func:`diagnostics`)
 
 
 @dataclass
@@ -274,7 +276,7 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         labels[scene.scene_id] = np.where(seg >= 0, obj[np.maximum(seg, 0)], -1).astype(np.int32)
         groups[scene.scene_id] = [np.nonzero(obj == o)[0].tolist() for o in range(obj.max(initial=-1) + 1)
                                   if (obj == o).sum() > 1]
-    write_json(out_dir / "matches.json", {
+    write_json(out_dir / MATCHES_JSON, {
         "config": to_dict(cfg), "mode": cfg.mode, "scenes": ids, "match_stats": stats,
         "n_decisions": len(decisions),
         "n_merged_edges": sum(len(d.accepted_edges()) for d in decisions),

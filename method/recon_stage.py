@@ -36,10 +36,20 @@ from selfseg.fileio import hash_json, read_json, write_json
 from selfseg.method.background import BackgroundConfig, plane_pixels, remove_support_plane, up_hint_from_poses
 from selfseg.method.projection import foreground_mask
 from selfseg.method.reconstruct import ReconConfig, Volume, occupancy, reconstruct
-from selfseg.stages import StageCache
+from selfseg.stages import STAGE_FILE, StageCache
 
 STAGE = "recon"
 CODE_VERSION = 1
+
+# The stage's files, relative to its folder (contents: the module docstring).
+CLOUD_NPZ = "cloud.npz"  # object points after background removal: points_w (m), colors, normals_w; world frame
+POSES_NPZ = "poses.npz"  # every frame's T_world_cam (m; NaN without a pose) and tracking_ok
+PLANE_JSON = "plane.json"  # the support plane [a, b, c, d] (world frame, m, unit normal up) and the up hint
+TSDF_NPZ = "tsdf.npz"  # the fused open3d VoxelBlockGrid (tsdf, weight, color), world frame
+VOLUME_JSON = "volume.json"  # the TSDF's voxel_size_m, block_resolution, trunc_m and K (3×3, OpenCV)
+KEYFRAMES_NPZ = "keyframes.npz"  # keyframe ids, T_world_cam and depth_m (F×H×W, m): free-space evidence
+FG_PNG = "fg/{frame_id:06d}.png"  # a frame's projected foreground mask (uint8 0/255, image size)
+REPORT_JSON = "report.json"  # world frame, point counts, tracking failures, timings (s)
 
 
 def recon_key(video: Video, cfg: ReconConfig, bg: BackgroundConfig) -> dict:
@@ -69,22 +79,22 @@ def run_recon_stage(video: Video, cache: StageCache, cfg: ReconConfig, bg: Backg
     obj = recon.points_w[keep]
 
     with cache.write(STAGE, video.video_id, key) as tmp:
-        np.savez_compressed(tmp / "cloud.npz", points_w=obj, colors=recon.colors[keep],
+        np.savez_compressed(tmp / CLOUD_NPZ, points_w=obj, colors=recon.colors[keep],
                             normals_w=recon.normals_w[keep])
         failures = set(recon.tracking_failures)
         T_all = np.stack([recon.T_world_cam.get(f, np.full((4, 4), np.nan)) for f in video.frame_ids])
         ok = np.array([f in recon.T_world_cam and f not in failures for f in video.frame_ids])
-        np.savez_compressed(tmp / "poses.npz", frame_ids=np.asarray(video.frame_ids, np.int64),
+        np.savez_compressed(tmp / POSES_NPZ, frame_ids=np.asarray(video.frame_ids, np.int64),
                             T_world_cam=T_all, tracking_ok=ok)
-        write_json(tmp / "plane.json", {"plane": plane.tolist(), "up_hint": up.tolist()})
+        write_json(tmp / PLANE_JSON, {"plane": plane.tolist(), "up_hint": up.tolist()})
         vol = recon.volume
-        vol.vbg.save(str(tmp / "tsdf.npz"))
-        write_json(tmp / "volume.json", {"voxel_size_m": vol.voxel_size_m, "block_resolution": vol.block_resolution,
-                                         "trunc_m": vol.trunc_m, "K": vol.K.tolist()})
-        np.savez_compressed(tmp / "keyframes.npz", frame_ids=np.asarray(vol.keyframe_ids, np.int64),
+        vol.vbg.save(str(tmp / TSDF_NPZ))
+        write_json(tmp / VOLUME_JSON, {"voxel_size_m": vol.voxel_size_m, "block_resolution": vol.block_resolution,
+                                       "trunc_m": vol.trunc_m, "K": vol.K.tolist()})
+        np.savez_compressed(tmp / KEYFRAMES_NPZ, frame_ids=np.asarray(vol.keyframe_ids, np.int64),
                             T_world_cam=vol.keyframe_T_world_cam, depth_m=vol.keyframe_depth_m)
         t0 = time.perf_counter()
-        (tmp / "fg").mkdir()
+        (tmp / FG_PNG).parent.mkdir()
         fg_pixels = []
         for fid in tqdm(video.frame_ids, desc=f"masks {video.video_id}", disable=not progress, leave=False):
             if fid in recon.T_world_cam:
@@ -95,9 +105,9 @@ def run_recon_stage(video: Video, cache: StageCache, cfg: ReconConfig, bg: Backg
             else:
                 mask = np.zeros((video.height, video.width), bool)
             fg_pixels.append(int(mask.sum()))
-            cv2.imwrite(str(tmp / "fg" / f"{fid:06d}.png"), mask.astype(np.uint8) * 255)
+            cv2.imwrite(str(tmp / FG_PNG.format(frame_id=fid)), mask.astype(np.uint8) * 255)
         t_masks = time.perf_counter() - t0
-        write_json(tmp / "report.json", {
+        write_json(tmp / REPORT_JSON, {
             "video_id": video.video_id, "world_frame": "dataset" if cfg.use_gt_poses else "first_camera",
             "frames": len(video.frame_ids), "tracking_failures": recon.tracking_failures,
             "points_fused": int(len(recon.points_w)), "points_kept": int(keep.sum()),
@@ -126,7 +136,7 @@ class ReconStage:
         """bool H×W projected foreground mask of a frame."""
         import cv2
 
-        p = self.dir / "fg" / f"{frame_id:06d}.png"
+        p = self.dir / FG_PNG.format(frame_id=frame_id)
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FileNotFoundError(f"{p}: missing or unreadable foreground mask")
@@ -137,9 +147,9 @@ class ReconStage:
         import open3d as o3d
 
         if self._volume is None:
-            meta = read_json(self.dir / "volume.json")
-            kf = np.load(self.dir / "keyframes.npz")
-            vbg = o3d.t.geometry.VoxelBlockGrid.load(str(self.dir / "tsdf.npz"))
+            meta = read_json(self.dir / VOLUME_JSON)
+            kf = np.load(self.dir / KEYFRAMES_NPZ)
+            vbg = o3d.t.geometry.VoxelBlockGrid.load(str(self.dir / TSDF_NPZ))
             self._volume = Volume(vbg, meta["voxel_size_m"], meta["block_resolution"], meta["trunc_m"],
                                   np.asarray(meta["K"]), kf["frame_ids"].tolist(), kf["T_world_cam"], kf["depth_m"])
         return self._volume
@@ -152,12 +162,12 @@ class ReconStage:
 def load_recon(stage_dir: str | Path) -> ReconStage:
     """Read a recon stage folder written by :func:`run_recon_stage`."""
     d = Path(stage_dir)
-    if not (d / "stage.json").is_file():
-        raise FileNotFoundError(f"{d}: not a completed recon stage (no stage.json)")
-    cloud = np.load(d / "cloud.npz")
-    poses = np.load(d / "poses.npz")
+    if not (d / STAGE_FILE).is_file():
+        raise FileNotFoundError(f"{d}: not a completed recon stage (no {STAGE_FILE})")
+    cloud = np.load(d / CLOUD_NPZ)
+    poses = np.load(d / POSES_NPZ)
     fids = poses["frame_ids"].tolist()
     T = {f: poses["T_world_cam"][i] for i, f in enumerate(fids) if np.isfinite(poses["T_world_cam"][i]).all()}
     ok = {f: bool(poses["tracking_ok"][i]) for i, f in enumerate(fids)}
     return ReconStage(d, cloud["points_w"], cloud["colors"], cloud["normals_w"], fids, T, ok,
-                      np.asarray(read_json(d / "plane.json")["plane"]), read_json(d / "report.json"))
+                      np.asarray(read_json(d / PLANE_JSON)["plane"]), read_json(d / REPORT_JSON))
