@@ -27,10 +27,9 @@ from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_tra
                                         train_data_record)
 from selfseg.dataset import Video
 from selfseg.method.network import ENCODER_BLOCKS, ResNetEncoder
-from selfseg.method.train import begin_training
+from selfseg.method.train import WEIGHTS, begin_training
 from selfseg.method_api import Method
 
-WEIGHTS = "weights.pt"
 RPN_WEIGHTS = (1.0, 1.0, 1.0, 1.0)
 BOX_WEIGHTS = (10.0, 10.0, 5.0, 5.0)
 STRIDES = (4, 8, 16)  # P2, P3, P4

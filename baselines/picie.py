@@ -40,7 +40,7 @@ from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, Sema
                                                   train_loop, training_key)
 from selfseg.config import from_dict, to_dict
 from selfseg.method.network import ENCODER_BLOCKS, RGB_MEAN, RGB_STD, ResNetEncoder, _conv_bn_relu
-from selfseg.method.train import _jitter, augment, begin_training
+from selfseg.method.train import WEIGHTS, _jitter, augment, begin_training
 
 
 @dataclass
@@ -219,7 +219,7 @@ def train_picie(frames: UnlabeledFrames, cfg: PicieConfig, out_dir: Path, progre
                 ) -> tuple[PicieNet, torch.Tensor]:
     """Train PiCIE into ``out_dir`` (resumable; a finished run is loaded) → (network, K test centroids)."""
     key = {"method": "picie", "config": training_key(cfg), "frames": len(frames)}
-    weights = Path(out_dir) / "weights.pt"
+    weights = Path(out_dir) / WEIGHTS
     saved = finished(weights, key)
     if saved is None:
         device = begin_training(cfg.train)

@@ -36,12 +36,12 @@ from selfseg.method.background import BackgroundConfig, BackgroundError, remove_
 from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
-from selfseg.method.train import (_RUNTIME_FIELDS, CHECKPOINT_DIR, OptimSchedule, TrainConfig, _latest_checkpoint,
-                                  _save_torch, resolve_device)
+from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, TrainConfig, _latest_checkpoint,
+                                  _save_checkpoint, _save_torch, resolve_device)
 from selfseg.method_api import Method
 from selfseg.raycast import backproject
 
-WEIGHTS = "weights.pt"
+TRAIN_DIR = "{method}-{key_hash}"  # in the method's workdir: its training run (files: selfseg.method.train)
 
 
 @dataclass
@@ -214,9 +214,8 @@ def train_loop(out_dir: Path, key: dict, modules: dict[str, nn.Module], opt: tor
     A checkpoint with another ``key`` raises ValueError. ``training_log.json`` records the losses.
     """
     key_hash = hash_json(key)
-    ckpt_dir = out_dir / CHECKPOINT_DIR
     start, losses = 0, []
-    latest = _latest_checkpoint(ckpt_dir)
+    latest = _latest_checkpoint(out_dir)
     if latest is not None:
         saved = torch.load(latest, map_location="cpu", weights_only=True)
         if saved["key_hash"] != key_hash:
@@ -246,15 +245,10 @@ def train_loop(out_dir: Path, key: dict, modules: dict[str, nn.Module], opt: tor
         bar.set_postfix(loss=f"{losses[-1]:.4f}")
         done = step + 1
         if done % sched.checkpoint_every == 0 or done == sched.steps:
-            ckpt_dir.mkdir(parents=True, exist_ok=True)
-            path = ckpt_dir / f"step_{done:06d}.pt"
-            _save_torch(path, {"step": done, "modules": {n: m.state_dict() for n, m in modules.items()},
-                               "optimizer": opt.state_dict(), "state": dict(state), "losses": losses,
-                               "key_hash": key_hash})
-            for old in ckpt_dir.glob("step_*.pt"):
-                if old != path:
-                    old.unlink()
-            write_json(out_dir / "training_log.json", {
+            _save_checkpoint(out_dir, done, {"step": done, "modules": {n: m.state_dict() for n, m in modules.items()},
+                                             "optimizer": opt.state_dict(), "state": dict(state), "losses": losses,
+                                             "key_hash": key_hash})
+            write_json(out_dir / TRAINING_LOG_JSON, {
                 "phase": desc, "key": key, "steps": len(losses), "loss": losses,
                 "final_loss_mean10": float(np.mean(losses[-10:])),
                 "seconds_this_session": round(time.perf_counter() - t0, 2),
@@ -301,7 +295,8 @@ class SemanticMethodBase(Method):
         cfg = self.config
         frames = UnlabeledFrames(train_videos, cfg.frame_stride, cfg.background)
         key = {"method": self.name, "config": training_key(cfg), "data": [video_key(v) for v in train_videos]}
-        net, centroids = self.train_model(frames, self.workdir / f"{self.name}-{hash_json(key)}")
+        out_dir = self.workdir / TRAIN_DIR.format(method=self.name, key_hash=hash_json(key))
+        net, centroids = self.train_model(frames, out_dir)
         self._net = net.to(self._device).eval()
         self._centroids = centroids.to(self._device)
 

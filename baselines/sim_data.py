@@ -19,6 +19,8 @@ from selfseg.dataset import Dataset, DatasetError
 from selfseg.fileio import hash_json
 from selfseg.method.train import OptimSchedule
 
+SHARED_TRAIN_DIR = "{method}-{key_hash:.12}"  # beside the fold folders: a method's networks trained on train_data
+
 
 @dataclass
 class SimSchedule(OptimSchedule):
@@ -108,4 +110,4 @@ def shared_train_dir(workdir: Path | None, method: str, key: dict) -> Path:
     (``work/<run>/<dataset>/<method>-<key hash>``), so the three folds train once; the hash keeps
     other settings apart."""
     fold_dir = Path(workdir) if workdir is not None else Path("work/fold")
-    return fold_dir.parent / f"{method}-{hash_json(key)[:12]}"
+    return fold_dir.parent / SHARED_TRAIN_DIR.format(method=method, key_hash=hash_json(key))

@@ -46,7 +46,9 @@ from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, Sema
 from selfseg.fileio import hash_json
 from selfseg.method.features import foreground_box
 from selfseg.method.network import RGB_MEAN, RGB_STD
-from selfseg.method.train import _jitter, augment, begin_training
+from selfseg.method.train import WEIGHTS, _jitter, augment, begin_training
+
+DINO_DIR = "dino"  # in the training run's folder: phase 1's (DINO) run; its WEIGHTS hold the teacher ViT
 
 
 @dataclass
@@ -286,7 +288,7 @@ def train_dino(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progres
     """Phase 1: DINO into ``out_dir`` (resumable) → (the teacher ViT, the phase's key)."""
     key = {"phase": "dino", "vit": result_key(cfg.vit), "dino": result_key(cfg.dino),
            "frames": len(frames), "background": result_key(cfg.background), "frame_stride": cfg.frame_stride}
-    weights = out_dir / "weights.pt"
+    weights = out_dir / WEIGHTS
     saved = finished(weights, key)
     if saved is None:
         d = cfg.dino
@@ -355,9 +357,9 @@ def train_stego(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progre
                 ) -> tuple[StegoNet, torch.Tensor]:
     """All three phases into ``out_dir`` (``dino/`` and the head; resumable) → (network, K centroids)."""
     out_dir = Path(out_dir)
-    vit, dino_key = train_dino(frames, cfg, out_dir / "dino", progress)
+    vit, dino_key = train_dino(frames, cfg, out_dir / DINO_DIR, progress)
     key = {"phase": "stego", "dino": hash_json(dino_key), "config": training_key(cfg)}
-    weights = out_dir / "weights.pt"
+    weights = out_dir / WEIGHTS
     saved = finished(weights, key)
     if saved is not None:
         head = StegoHead(cfg.vit.dim, cfg.head.embed_dim)

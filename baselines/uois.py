@@ -34,10 +34,9 @@ from selfseg.dataset import Video
 from selfseg.method.features import foreground_box
 from selfseg.method.meanshift import absorb_small, split_components
 from selfseg.method.network import RGB_MEAN, RGB_STD, EmbeddingNet, NetConfig
-from selfseg.method.train import begin_training
+from selfseg.method.train import WEIGHTS, begin_training
 from selfseg.method_api import Method
 
-WEIGHTS = "weights.pt"
 # Settings read only at test time: changing them reuses the trained networks.
 TEST_TIME_FIELDS = ("sigma_m", "n_seeds", "max_points", "meanshift_iters", "merge_m", "min_instance_px",
                     "rrn_threshold")

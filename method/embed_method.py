@@ -21,6 +21,8 @@ from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
 from selfseg.method_api import Method
 
+NET_DIR = "net-{key_hash}"  # in the workdir: the network's training run (files: selfseg.method.train)
+
 
 @dataclass
 class EmbeddingMethodConfig:
@@ -69,7 +71,8 @@ class EmbeddingMethodBase(Method):
         source, identity = self.label_source(train_videos)
         key = {"method": self.name, "net": to_dict(self.config.net), "train": to_dict(self.config.train),
                "frame_stride": self.config.frame_stride, "data": identity}
-        self.load(train_embedding(source, self.config.train, self.config.net, self.workdir / f"net-{hash_json(key)}"))
+        out_dir = self.workdir / NET_DIR.format(key_hash=hash_json(key))
+        self.load(train_embedding(source, self.config.train, self.config.net, out_dir))
 
     def load(self, weights_path: str | Path) -> None:
         """Use the network saved at ``weights_path`` (written by :func:`train_embedding`)."""

@@ -12,8 +12,9 @@ order (measured on tiny: 1 and 2 threads give different losses from step 1 and I
 and ``OMP_NUM_THREADS``. :func:`begin_training` applies it, and it stays set for the inference that
 follows in the same process (evaluate's method process).
 
-Files in ``out_dir``: ``checkpoints/step_NNNNNN.pt`` (only the latest is kept), ``weights.pt``
-(final; a finished run is not retrained), ``training_log.json`` and ``loss_curve.png``.
+Files in ``out_dir`` (templates below, shared by the baselines' trainers): ``checkpoints/step_NNNNNN.pt``
+(only the latest is kept), ``weights.pt`` (final; a finished run is not retrained), ``training_log.json``
+and ``loss_curve.png``.
 ``out_dir`` must be specific to the label source: the trainer cannot tell two sources apart.
 """
 from __future__ import annotations
@@ -37,8 +38,11 @@ from selfseg.method.contrastive import NEGATIVES, prototype_contrastive_loss
 from selfseg.method.features import foreground_box
 from selfseg.method.network import EmbeddingNet, NetConfig
 
-WEIGHTS = "weights.pt"
-CHECKPOINT_DIR = "checkpoints"
+# Files of a training run, relative to its out_dir.
+WEIGHTS = "weights.pt"  # the final network (torch dict with the settings' key_hash); a finished run is not retrained
+CHECKPOINT_PT = "checkpoints/step_{step:06d}.pt"  # resumable state after `step` optimizer steps (only the latest kept)
+TRAINING_LOG_JSON = "training_log.json"  # settings, per-step losses, session seconds and throughput; at each checkpoint
+LOSS_CURVE_PNG = "loss_curve.png"  # plot of the per-step loss and its running mean
 # Settings that change how a run executes but not its result; excluded from the resume key.
 _RUNTIME_FIELDS = ("device", "threads", "checkpoint_every")
 
@@ -273,9 +277,24 @@ def _save_torch(path: Path, obj: dict) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _latest_checkpoint(ckpt_dir: Path) -> Path | None:
-    found = sorted(ckpt_dir.glob("step_*.pt")) if ckpt_dir.is_dir() else []
+def _checkpoints(out_dir: Path) -> list[Path]:
+    """The CHECKPOINT_PT files in ``out_dir``, oldest first."""
+    return sorted(out_dir.glob(CHECKPOINT_PT.replace("{step:06d}", "*")))
+
+
+def _latest_checkpoint(out_dir: Path) -> Path | None:
+    found = _checkpoints(out_dir)
     return found[-1] if found else None
+
+
+def _save_checkpoint(out_dir: Path, step: int, state: dict) -> None:
+    """Save ``state`` as the checkpoint after ``step`` steps (CHECKPOINT_PT) and delete the older ones."""
+    path = out_dir / CHECKPOINT_PT.format(step=step)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _save_torch(path, state)
+    for old in _checkpoints(out_dir):
+        if old != path:
+            old.unlink()
 
 
 def _write_log(out_dir: Path, key: dict, losses: list[float], seconds: float, images: int, device: torch.device) -> None:
@@ -284,7 +303,7 @@ def _write_log(out_dir: Path, key: dict, losses: list[float], seconds: float, im
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    write_json(out_dir / "training_log.json", {
+    write_json(out_dir / TRAINING_LOG_JSON, {
         "config": key, "steps": len(losses), "loss": losses, "final_loss_mean10": float(np.mean(losses[-10:])),
         "seconds_this_session": round(seconds, 2), "images_per_s": round(images / max(seconds, 1e-9), 3),
         "device": str(device), "threads": torch.get_num_threads()})
@@ -300,7 +319,7 @@ def _write_log(out_dir: Path, key: dict, losses: list[float], seconds: float, im
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     plt.close(fig)
-    atomic_write_bytes(out_dir / "loss_curve.png", buf.getvalue())
+    atomic_write_bytes(out_dir / LOSS_CURVE_PNG, buf.getvalue())
 
 
 def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, out_dir: str | Path,
@@ -323,8 +342,7 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
     net = EmbeddingNet(net_cfg).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start, losses = 0, []
-    ckpt_dir = out_dir / CHECKPOINT_DIR
-    latest = _latest_checkpoint(ckpt_dir)
+    latest = _latest_checkpoint(out_dir)
     if latest is not None:
         state = torch.load(latest, map_location=device, weights_only=True)
         if state["key_hash"] != hash_json(key):
@@ -352,13 +370,8 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
         bar.set_postfix(loss=f"{losses[-1]:.4f}")
         done = step + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            ckpt_dir.mkdir(parents=True, exist_ok=True)
-            path = ckpt_dir / f"step_{done:06d}.pt"
-            _save_torch(path, {"step": done, "model": net.state_dict(), "optimizer": opt.state_dict(),
-                               "losses": losses, "key_hash": hash_json(key)})
-            for old in ckpt_dir.glob("step_*.pt"):
-                if old != path:
-                    old.unlink()
+            _save_checkpoint(out_dir, done, {"step": done, "model": net.state_dict(), "optimizer": opt.state_dict(),
+                                             "losses": losses, "key_hash": hash_json(key)})
             _write_log(out_dir, key, losses, time.perf_counter() - t0, images, device)
     bar.close()
     _save_torch(weights, {"net_cfg": to_dict(net_cfg), "state_dict": net.state_dict(), "key_hash": hash_json(key)})
