@@ -31,7 +31,7 @@ from cloud_fixtures import fused_cloud  # noqa: E402
 from selfseg.eval.points import adjusted_rand_index  # noqa: E402
 from selfseg.fileio import write_json  # noqa: E402
 from selfseg.method.lccp import LCCPConfig, lccp_from_supervoxels  # noqa: E402
-from selfseg.method.recon_stage import load_recon  # noqa: E402
+from selfseg.method.recon_stage import CLOUD_NPZ, load_recon  # noqa: E402
 from selfseg.method.supervoxels import supervoxel_clustering  # noqa: E402
 
 ANCHORS = ("world", "cloud")
@@ -76,7 +76,7 @@ def main(argv=None) -> None:
     P, N, _ = fused_cloud(scene_meshes(), n_views=32, grid_m=v, width=320, height=240, fx=280.0, radius=0.7)
     clouds.append(("analytic", P, N, None))
     if args.recon is not None:
-        for d in sorted(p for p in args.recon.iterdir() if (p / "cloud.npz").is_file()):
+        for d in sorted(p for p in args.recon.iterdir() if (p / CLOUD_NPZ).is_file()):
             r = load_recon(d)
             clouds.append((f"tsdf:{d.name}", np.asarray(r.points_w, np.float64), np.asarray(r.normals_w, np.float64),
                            np.asarray(r.colors, np.float64) * 255.0))
