@@ -7,6 +7,7 @@ dataset's labels, replacing the paper's COCO-trained V1 features.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,8 +57,8 @@ class V1DisjointMethod(EmbeddingMethodBase):
         if not self.config.train_data:
             raise DatasetError("v1-disjoint needs train_data: the path of a dataset generated with a disjoint "
                                "object subset")
-        try:
-            ds = Dataset(self.config.train_data)
+        try:  # absolute: the sandbox refuses ground-truth names on relative paths (as for sim_data's train_data)
+            ds = Dataset(os.path.abspath(self.config.train_data))
         except DatasetError as e:
             raise DatasetError(f"v1-disjoint train_data is not usable: {e}") from None
         return gt_label_source(self, [ds.labeled(v) for v in ds.video_ids])

@@ -242,6 +242,22 @@ def test_v1_disjoint_trains_elsewhere_and_never_reads_test_labels(analytic_datas
     assert log["steps"] == 2
 
 
+def test_v1_disjoint_train_data_relative_to_the_working_directory(analytic_dataset, tmp_path, monkeypatch):
+    """Through evaluate's sandbox (which refuses ground-truth names on relative paths) a relative train_data
+    is opened by its absolute path: read as training data, not rejected as a cheat."""
+    from selfseg.eval.cli import main as evaluate
+
+    make_dataset(tmp_path / "train", two_box_scenes()[:1], n_frames=2, width=64, height=48, fx=60.0)
+    monkeypatch.chdir(tmp_path)
+    small = [f"net.{k}={v}" for k, v in vars(SMALL_NET).items() if k in ("width", "aspp_channels",
+                                                                       "low_level_channels", "decoder_channels")]
+    sets = ["train_data=train", "train.steps=2", "train.batch_size=2", "train.image_size=64", "train.crop=[32, 48]",
+            "device=cpu", *small]
+    assert evaluate(["--method", "v1-disjoint", "--data", str(analytic_dataset), "--folds", "0", "--out", "out",
+                     "--quiet", *(a for s in sets for a in ("--set", s))]) == 0
+    assert not (tmp_path / "out" / "rejected").exists()
+
+
 def test_v1_disjoint_needs_its_training_data(tmp_path):
     cls = get_method_class("v1-disjoint")
     assert not cls.needs_ground_truth and cls.needs_fit
