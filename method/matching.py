@@ -310,6 +310,89 @@ def _decode(z: np.ndarray, p: _Problem, cfg: MatchConfig):
     return node_map, sorted(edge_map), float(cost)
 
 
+def _prepare(C: np.ndarray, edges1: np.ndarray, edges2: np.ndarray, cfg: MatchConfig) -> MatchResult | _Problem:
+    """Check one instance; its empty match when the pre-filter proves it optimal, else its reduced BLP.
+
+    ``solve_s`` of the empty match and ``prep_s`` of the BLP are this step's wall time (s).
+    """
+    start = time.perf_counter()
+    C = np.asarray(C, dtype=np.float64)
+    if C.ndim != 2:
+        raise ValueError(f"cost matrix must be 2-D, got shape {C.shape}")
+    n1, n2 = C.shape
+    e1 = _check_edges(edges1, n1, "edges1")
+    e2 = _check_edges(edges2, n2, "edges2")
+    empty, keep = prefilter(C, e1, e2, cfg)
+    if empty:
+        return MatchResult({}, [], empty_match_cost(n1, len(e1), cfg), "prefiltered_empty",
+                           time.perf_counter() - start)
+    p = _Problem(C, e1, e2, *_build(C, e1, e2, keep, cfg))
+    p.prep_s = time.perf_counter() - start
+    return p
+
+
+def _stack(probs: Sequence[_Problem]):
+    """Block-diagonal (c, A, b) of ``probs``, with the variable and row offsets of the blocks."""
+    off = np.cumsum([0] + [len(p.c) for p in probs])
+    row_off = np.cumsum([0] + [len(p.b) for p in probs])
+    A = sp.csr_matrix((np.concatenate([p.A[2] for p in probs]),
+                       (np.concatenate([p.A[0] + row_off[n] for n, p in enumerate(probs)]),
+                        np.concatenate([p.A[1] + off[n] for n, p in enumerate(probs)]))),
+                      shape=(row_off[-1], off[-1]))
+    c = np.concatenate([p.c for p in probs])
+    b = np.concatenate([p.b for p in probs])
+    return c, A, b, off, row_off
+
+
+def _result(z: np.ndarray, p: _Problem, status: Status, share: float, cfg: MatchConfig) -> MatchResult:
+    """MatchResult of the integral solution ``z`` of ``p``; ``share`` is its part of the stacked solves (s)."""
+    node_map, edge_map, cost = _decode(z, p, cfg)
+    return MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c))
+
+
+def _solve_lp(probs: Sequence[_Problem], cfg: MatchConfig) -> tuple[list[np.ndarray | None], float]:
+    """Stacked LP relaxation: per block its rounded solution if integral and feasible (else None),
+    and the LP's wall time per block (s)."""
+    start = time.perf_counter()
+    c, A, b, off, row_off = _stack(probs)
+    lp = linprog(c, A_ub=A, b_ub=b, bounds=(0, 1), method="highs")
+    if lp.status != 0:
+        raise RuntimeError(f"LP relaxation failed: status {lp.status} ({lp.message})")
+    share = (time.perf_counter() - start) / len(probs)
+    z = np.round(lp.x)
+    bad_var = np.abs(lp.x - z) > cfg.int_tol
+    bad_row = A @ z > b + 1e-9
+    blocks: list[np.ndarray | None] = []
+    for n in range(len(probs)):
+        ok = not bad_var[off[n]:off[n + 1]].any() and not bad_row[row_off[n]:row_off[n + 1]].any()
+        blocks.append(z[off[n]:off[n + 1]] if ok else None)
+    return blocks, share
+
+
+def _solve_milp(probs: Sequence[_Problem], cfg: MatchConfig, lp_share: float) -> list[MatchResult]:
+    """Stacked MILP over ``probs``; one that stops at ``cfg.time_limit_s`` is re-solved block by block.
+
+    ``lp_share`` (s) is each block's share of the LP before it.
+    """
+    start = time.perf_counter()
+    c, A, b, off, _ = _stack(probs)
+    res = milp(c, integrality=np.ones(len(c)), bounds=Bounds(0, 1),
+               constraints=LinearConstraint(A, -np.inf, b),
+               options={"time_limit": cfg.time_limit_s, "mip_rel_gap": cfg.mip_rel_gap})
+    if res.status == 1 and len(probs) > 1:
+        # the stacked MILP stopped at the time limit: isolate the hard blocks
+        return [r for p in probs for r in _solve_milp([p], cfg, lp_share)]
+    if res.status == 0:
+        status: Status = "milp_optimal"
+    elif res.status == 1:  # iteration or time limit: the solution (if any) is not proven optimal
+        status = "time_limit"
+    else:
+        raise RuntimeError(f"MILP failed: status {res.status} ({res.message})")
+    x = np.round(res.x) if res.x is not None else np.zeros(len(c))
+    share = lp_share + (time.perf_counter() - start) / len(probs)
+    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg) for n, p in enumerate(probs)]
+
+
 def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
                 cfg: MatchConfig) -> list[MatchResult]:
     """Solve independent matching instances (C n1×n2 node costs, edges1, edges2) together.
@@ -330,89 +413,18 @@ def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     ``solve_s`` of a result is its own preparation time plus an equal share of the LP and MILP
     it took part in. With ``cfg.prefilter`` False, neither bound nor reduction is applied.
     """
-    results: list[MatchResult | None] = [None] * len(problems)
-    todo: list[int] = []
-    probs: list[_Problem] = []
-    for idx, (C, edges1, edges2) in enumerate(problems):
-        start = time.perf_counter()
-        C = np.asarray(C, dtype=np.float64)
-        if C.ndim != 2:
-            raise ValueError(f"cost matrix must be 2-D, got shape {C.shape}")
-        n1, n2 = C.shape
-        e1 = _check_edges(edges1, n1, "edges1")
-        e2 = _check_edges(edges2, n2, "edges2")
-        empty, keep = prefilter(C, e1, e2, cfg)
-        if empty:
-            results[idx] = MatchResult({}, [], empty_match_cost(n1, len(e1), cfg), "prefiltered_empty",
-                                       time.perf_counter() - start)
-            continue
-        p = _Problem(C, e1, e2, *_build(C, e1, e2, keep, cfg))
-        p.prep_s = time.perf_counter() - start
-        todo.append(idx)
-        probs.append(p)
-    if not todo:
-        return results
-
-    def finish(members: list[int], zs: list[np.ndarray], status: Status, share: float) -> None:
-        for m, z in zip(members, zs):
-            p = probs[m]
-            node_map, edge_map, cost = _decode(z, p, cfg)
-            results[todo[m]] = MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c))
-
-    def stack(members: list[int]):
-        """Block-diagonal (c, A, b), variable offsets and row offsets of the blocks."""
-        off = np.cumsum([0] + [len(probs[m].c) for m in members])
-        row_off = np.cumsum([0] + [len(probs[m].b) for m in members])
-        A = sp.csr_matrix((np.concatenate([probs[m].A[2] for m in members]),
-                           (np.concatenate([probs[m].A[0] + row_off[n] for n, m in enumerate(members)]),
-                            np.concatenate([probs[m].A[1] + off[n] for n, m in enumerate(members)]))),
-                          shape=(row_off[-1], off[-1]))
-        c = np.concatenate([probs[m].c for m in members])
-        b = np.concatenate([probs[m].b for m in members])
-        return c, A, b, off, row_off
-
-    pending = list(range(len(probs)))
+    results: list[MatchResult | _Problem] = [_prepare(C, edges1, edges2, cfg) for C, edges1, edges2 in problems]
+    pending = [idx for idx, r in enumerate(results) if isinstance(r, _Problem)]  # each replaced by its result
     lp_share = 0.0
-    if cfg.lp_first:
-        start = time.perf_counter()
-        c, A, b, off, row_off = stack(pending)
-        lp = linprog(c, A_ub=A, b_ub=b, bounds=(0, 1), method="highs")
-        if lp.status != 0:
-            raise RuntimeError(f"LP relaxation failed: status {lp.status} ({lp.message})")
-        lp_share = (time.perf_counter() - start) / len(pending)
-        z = np.round(lp.x)
-        bad_var = np.abs(lp.x - z) > cfg.int_tol
-        bad_row = A @ z > b + 1e-9
-        integral, rest = [], []
-        for n, m in enumerate(pending):
-            ok = not bad_var[off[n]:off[n + 1]].any() and not bad_row[row_off[n]:row_off[n + 1]].any()
-            (integral if ok else rest).append((m, z[off[n]:off[n + 1]]))
-        finish([m for m, _ in integral], [z for _, z in integral], "lp_integral", lp_share)
-        pending = [m for m, _ in rest]
-
-    def solve_milp(members: list[int]) -> None:
-        start = time.perf_counter()
-        c, A, b, off, _ = stack(members)
-        res = milp(c, integrality=np.ones(len(c)), bounds=Bounds(0, 1),
-                   constraints=LinearConstraint(A, -np.inf, b),
-                   options={"time_limit": cfg.time_limit_s, "mip_rel_gap": cfg.mip_rel_gap})
-        if res.status == 1 and len(members) > 1:
-            # the stacked MILP stopped at the time limit: isolate the hard blocks
-            for m in members:
-                solve_milp([m])
-            return
-        if res.status == 0:
-            status: Status = "milp_optimal"
-        elif res.status == 1:  # iteration or time limit: the solution (if any) is not proven optimal
-            status = "time_limit"
-        else:
-            raise RuntimeError(f"MILP failed: status {res.status} ({res.message})")
-        x = np.round(res.x) if res.x is not None else np.zeros(len(c))
-        share = lp_share + (time.perf_counter() - start) / len(members)
-        finish(members, [x[off[n]:off[n + 1]] for n in range(len(members))], status, share)
-
+    if pending and cfg.lp_first:
+        blocks, lp_share = _solve_lp([results[idx] for idx in pending], cfg)
+        for idx, z in zip(pending, blocks):
+            if z is not None:
+                results[idx] = _result(z, results[idx], "lp_integral", lp_share, cfg)
+        pending = [idx for idx, z in zip(pending, blocks) if z is None]
     if pending:
-        solve_milp(pending)
+        for idx, r in zip(pending, _solve_milp([results[idx] for idx in pending], cfg, lp_share)):
+            results[idx] = r
     return results
 
 
