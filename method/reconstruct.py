@@ -198,6 +198,100 @@ def trajectory_error(T_est: np.ndarray, T_ref: np.ndarray) -> dict[str, float]:
             "max_t_err_m": float(t_err.max()), "final_r_err_deg": float(r_err[-1])}
 
 
+def _check_config(video: Video, cfg: ReconConfig) -> None:
+    """Raise ValueError for a config that cannot run on ``video``."""
+    if cfg.use_gt_poses and not video.poses_given:
+        raise ValueError(f"video {video.video_id}: use_gt_poses needs the video opened with poses_given=True")
+    tc = cfg.tracking
+    if len(tc.max_correspondence_m) != len(tc.iterations):
+        raise ValueError("tracking.max_correspondence_m and tracking.iterations must have the same length")
+
+
+def _new_tsdf(cfg: ReconConfig):
+    """Empty Open3D ``VoxelBlockGrid`` on ``CPU:0`` with tsdf, weight and colour (voxel size in m)."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
+                                         (1, 1, 3), cfg.voxel_size_m, cfg.block_resolution, cfg.block_count,
+                                         o3c.Device("CPU:0"))
+
+
+def _read_frame(video: Video, fid: int, K: np.ndarray, cfg: ReconConfig, timings: dict[str, float]):
+    """Depth (m, H×W), RGB (H×W×3 uint8) and valid-depth mask of frame ``fid``; adds to ``read_s``."""
+    t0 = time.perf_counter()
+    depth = video.depth_m(fid)
+    rgb = video.rgb(fid)
+    if not np.allclose(video.K(fid), K):
+        raise ReconstructionError(f"video {video.video_id} frame {fid}: intrinsics change within the video")
+    timings["read_s"] += time.perf_counter() - t0
+    valid = (depth > cfg.depth_min_m) & (depth < cfg.depth_max_m)
+    return depth, rgb, valid
+
+
+def _track(depth: np.ndarray, valid: np.ndarray, K: np.ndarray, model, T_pred: np.ndarray, T_prev: np.ndarray,
+           tc: TrackingConfig, timings: dict[str, float]) -> tuple[np.ndarray, bool]:
+    """Frame-to-model ICP from the prediction ``T_pred``: (T_world_cam, True) when the fit and the step
+    from ``T_prev`` pass the limits, else (``T_pred``, False); adds to ``track_s``.
+
+    ``model`` is the (k-d tree, points, normals) of the TSDF surface, world frame (m).
+    """
+    t0 = time.perf_counter()
+    stride = np.zeros_like(valid)
+    stride[::tc.source_stride, ::tc.source_stride] = True
+    src = _voxel_downsample(backproject(depth, K, valid & stride)[0], tc.source_voxel_m)
+    T_new, fitness = icp_point_to_plane(src, model[0], model[1], model[2], T_pred,
+                                        list(zip(tc.max_correspondence_m, tc.iterations)), tc.normal_balance)
+    step = invert_T(T_prev) @ T_new
+    ok = (fitness >= tc.min_fitness and np.linalg.norm(step[:3, 3]) <= tc.max_step_m
+          and _rotation_deg(step[:3, :3]) <= tc.max_step_deg)
+    timings["track_s"] += time.perf_counter() - t0
+    return (T_new if ok else T_pred), ok
+
+
+def _integrate(vbg, depth_m: np.ndarray, rgb: np.ndarray, intr, T: np.ndarray, cfg: ReconConfig,
+               timings: dict[str, float]) -> None:
+    """Fuse one frame (depth in m, 0 = none; RGB uint8) into ``vbg`` at camera pose ``T`` (T_world_cam);
+    adds to ``integrate_s``."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    t0 = time.perf_counter()
+    depth_img = o3d.t.geometry.Image(o3c.Tensor(depth_m))
+    extrinsic = o3c.Tensor(invert_T(T))
+    color_img = o3d.t.geometry.Image(o3c.Tensor(rgb.astype(np.float32) / 255))
+    blocks = vbg.compute_unique_block_coordinates(depth_img, intr, extrinsic, 1.0, cfg.depth_max_m,
+                                                  cfg.trunc_voxel_multiplier)
+    vbg.integrate(blocks, depth_img, color_img, intr, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+    timings["integrate_s"] += time.perf_counter() - t0
+
+
+def _model_surface(vbg, tc: TrackingConfig, timings: dict[str, float]):
+    """Tracking target: (k-d tree, points, normals) of the TSDF surface, world frame (m); adds to ``model_s``."""
+    t0 = time.perf_counter()
+    surf = vbg.extract_point_cloud(tc.model_weight_threshold)
+    model_pts = surf.point.positions.numpy().astype(np.float64)
+    model = (cKDTree(model_pts), model_pts, surf.point.normals.numpy().astype(np.float64))
+    timings["model_s"] += time.perf_counter() - t0
+    return model
+
+
+def _final_surface(vbg, video: Video, cfg: ReconConfig, fused: int, timings: dict[str, float]):
+    """Points (N×3 float32, m), colours (N×3 float32 in [0, 1]) and unit normals (N×3 float64) of the
+    fused surface, world frame; sets ``extract_s``."""
+    t0 = time.perf_counter()
+    pcd = vbg.extract_point_cloud(cfg.weight_threshold)
+    timings["extract_s"] = time.perf_counter() - t0
+    if "positions" not in pcd.point or len(pcd.point.positions) == 0:
+        raise ReconstructionError(f"video {video.video_id}: fusion produced no surface points "
+                                  f"(weight threshold {cfg.weight_threshold}, {fused} frames fused)")
+    pts = pcd.point.positions.numpy().astype(np.float32)
+    cols = np.clip(pcd.point.colors.numpy(), 0, 1).astype(np.float32)
+    nrm = pcd.point.normals.numpy().astype(np.float64)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return pts, cols, nrm
+
+
 def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Reconstruction:
     """Fuse ``video`` into a TSDF, tracking the camera frame to model (or reading poses if ``use_gt_poses``).
 
@@ -206,25 +300,15 @@ def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Recons
     fused and is listed in ``tracking_failures``; more than ``max_consecutive_failures`` in a row
     raise :class:`ReconstructionError`, as does a video without a frame with enough valid depth.
     """
-    import open3d as o3d
-    import open3d.core as o3c
-
-    if cfg.use_gt_poses and not video.poses_given:
-        raise ValueError(f"video {video.video_id}: use_gt_poses needs the video opened with poses_given=True")
+    _check_config(video, cfg)
     tc = cfg.tracking
-    if len(tc.max_correspondence_m) != len(tc.iterations):
-        raise ValueError("tracking.max_correspondence_m and tracking.iterations must have the same length")
-    device = o3c.Device("CPU:0")
     K = video.K()
     intr = o3d_intrinsics(K)
-    trunc_m = cfg.trunc_voxel_multiplier * cfg.voxel_size_m
     frames = list(video.frame_ids)
     if not frames:
         raise ReconstructionError(f"video {video.video_id}: no frames")
     timings = {"read_s": 0.0, "track_s": 0.0, "integrate_s": 0.0, "model_s": 0.0}
-    vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
-                                        (1, 1, 3), cfg.voxel_size_m, cfg.block_resolution, cfg.block_count, device)
-    icp_stages = list(zip(tc.max_correspondence_m, tc.iterations))
+    vbg = _new_tsdf(cfg)
 
     poses: dict[int, np.ndarray] = {}
     failures: list[int] = []
@@ -233,15 +317,8 @@ def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Recons
     T_prev = velocity = None
     consecutive = fused = 0
     for fid in tqdm(frames, desc=f"fuse {video.video_id}", disable=not progress, leave=False):
-        t0 = time.perf_counter()
-        depth = video.depth_m(fid)
-        rgb = video.rgb(fid)
-        if not np.allclose(video.K(fid), K):
-            raise ReconstructionError(f"video {video.video_id} frame {fid}: intrinsics change within the video")
-        timings["read_s"] += time.perf_counter() - t0
-        valid = (depth > cfg.depth_min_m) & (depth < cfg.depth_max_m)
+        depth, rgb, valid = _read_frame(video, fid, K, cfg, timings)
         ok = valid.mean() >= cfg.min_valid_depth_fraction
-        depth_img = o3d.t.geometry.Image(o3c.Tensor(np.where(valid, depth, 0).astype(np.float32)))
         if cfg.use_gt_poses:
             T = video.T_world_cam(fid)
         elif T_prev is None:  # the first frame with enough depth anchors the world frame
@@ -249,18 +326,7 @@ def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Recons
         else:
             T = T_prev @ velocity  # constant-velocity prediction
             if ok:
-                t0 = time.perf_counter()
-                stride = np.zeros_like(valid)
-                stride[::tc.source_stride, ::tc.source_stride] = True
-                src = _voxel_downsample(backproject(depth, K, valid & stride)[0], tc.source_voxel_m)
-                T_new, fitness = icp_point_to_plane(src, model[0], model[1], model[2], T, icp_stages,
-                                                    tc.normal_balance)
-                step = invert_T(T_prev) @ T_new
-                ok = (fitness >= tc.min_fitness and np.linalg.norm(step[:3, 3]) <= tc.max_step_m
-                      and _rotation_deg(step[:3, :3]) <= tc.max_step_deg)
-                timings["track_s"] += time.perf_counter() - t0
-                if ok:
-                    T = T_new
+                T, ok = _track(depth, valid, K, model, T, T_prev, tc, timings)
         if T_prev is None and not ok:  # nothing fused yet: no world frame to predict in
             failures.append(fid)
             continue
@@ -282,37 +348,19 @@ def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Recons
         T_prev = T
         if not ok:
             continue
-        t0 = time.perf_counter()
-        extrinsic = o3c.Tensor(invert_T(T))
-        color_img = o3d.t.geometry.Image(o3c.Tensor(rgb.astype(np.float32) / 255))
-        blocks = vbg.compute_unique_block_coordinates(depth_img, intr, extrinsic, 1.0, cfg.depth_max_m,
-                                                      cfg.trunc_voxel_multiplier)
-        vbg.integrate(blocks, depth_img, color_img, intr, extrinsic, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
-        timings["integrate_s"] += time.perf_counter() - t0
+        depth_m = np.where(valid, depth, 0).astype(np.float32)
+        _integrate(vbg, depth_m, rgb, intr, T, cfg, timings)
         if fused % cfg.keyframe_stride == 0:
-            keyframes.append((fid, T, np.where(valid, depth, 0).astype(np.float32)))
+            keyframes.append((fid, T, depth_m))
         if not cfg.use_gt_poses and (fused < 3 or fused % tc.model_refresh_frames == 0):
-            t0 = time.perf_counter()
-            surf = vbg.extract_point_cloud(tc.model_weight_threshold)
-            model_pts = surf.point.positions.numpy().astype(np.float64)
-            model = (cKDTree(model_pts), model_pts, surf.point.normals.numpy().astype(np.float64))
-            timings["model_s"] += time.perf_counter() - t0
+            model = _model_surface(vbg, tc, timings)
         fused += 1
     if fused == 0:
         raise ReconstructionError(f"video {video.video_id}: no frame has at least {cfg.min_valid_depth_fraction:.0%} "
                                   f"valid depth pixels in [{cfg.depth_min_m}, {cfg.depth_max_m}] m")
 
-    t0 = time.perf_counter()
-    pcd = vbg.extract_point_cloud(cfg.weight_threshold)
-    timings["extract_s"] = time.perf_counter() - t0
-    if "positions" not in pcd.point or len(pcd.point.positions) == 0:
-        raise ReconstructionError(f"video {video.video_id}: fusion produced no surface points "
-                                  f"(weight threshold {cfg.weight_threshold}, {fused} frames fused)")
-    pts = pcd.point.positions.numpy().astype(np.float32)
-    cols = np.clip(pcd.point.colors.numpy(), 0, 1).astype(np.float32)
-    nrm = pcd.point.normals.numpy().astype(np.float64)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    volume = Volume(vbg, cfg.voxel_size_m, cfg.block_resolution, trunc_m, K,
+    pts, cols, nrm = _final_surface(vbg, video, cfg, fused, timings)
+    volume = Volume(vbg, cfg.voxel_size_m, cfg.block_resolution, cfg.trunc_voxel_multiplier * cfg.voxel_size_m, K,
                     [k[0] for k in keyframes], np.stack([k[1] for k in keyframes]),
                     np.stack([k[2] for k in keyframes]))
     return Reconstruction(pts, cols, nrm.astype(np.float32), poses, failures, volume,
