@@ -192,7 +192,6 @@ class BlenderScene:
     def __init__(self, objects: list, appearance: dict, width: int, height: int, K: np.ndarray,
                  cfg: RenderConfig = RenderConfig(), seed: int = 0):
         import bpy
-        import mathutils
 
         if width <= 0 or height <= 0:
             raise ValueError(f"resolution must be positive, got {width}x{height}")
@@ -202,9 +201,23 @@ class BlenderScene:
             raise ValueError("BlenderScene needs square pixels and a centred principal point (see intrinsics())")
         with _blender_quiet():
             bpy.ops.wm.read_factory_settings(use_empty=True)
-        sc = bpy.context.scene
-        self.scene = sc
-        sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = width, height, 100
+        self.scene = bpy.context.scene
+        self._setup_output()
+        self.instance_ids = self._add_objects(objects)
+        self._add_table(appearance["table"]["texture_seed"])
+        self._add_lights(appearance)
+        self.camera = self._add_camera()
+        self._tmp = Path(tempfile.mkdtemp(prefix="selfseg_render_"))
+        self._sigints: list[int] = []  # SIGINTs noted while rendering (see __enter__)
+        self._add_ground_truth_outputs()
+        self._gpu = False
+        if cfg.renderer == "cycles":
+            self._setup_cycles(seed)
+
+    def _setup_output(self) -> None:
+        """Resolution (px, square pixels), no dithering, render threads, Standard view transform, Z pass."""
+        sc, cfg = self.scene, self.cfg
+        sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = self.width, self.height, 100
         sc.render.pixel_aspect_x = sc.render.pixel_aspect_y = 1.0
         sc.render.dither_intensity = 0.0
         sc.render.threads_mode = "FIXED" if cfg.threads else "AUTO"
@@ -213,8 +226,12 @@ class BlenderScene:
         sc.view_settings.view_transform = "Standard"
         sc.view_layers[0].use_pass_z = True
 
-        # objects; the flat colour encodes the instance id for the ground-truth pass
-        self.instance_ids = []
+    def _add_objects(self, objects: list) -> list[int]:
+        """Textured objects at their T_world_obj (m); the flat colour encodes the instance id for the
+        ground-truth pass. Returns the instance ids."""
+        import mathutils
+
+        instance_ids = []
         for inst_id, model, T in objects:
             if not 1 <= inst_id < 65536:
                 raise ValueError(f"instance id {inst_id} outside [1, 65535]")
@@ -225,18 +242,27 @@ class BlenderScene:
             ob.matrix_world = mathutils.Matrix(np.asarray(T, float).tolist())
             ob.color = ((inst_id % 256) / ID_SCALE, (inst_id // 256) / ID_SCALE, 0.0, 1.0)
             ob.pass_index = inst_id
-            self.instance_ids.append(inst_id)
+            instance_ids.append(inst_id)
+        return instance_ids
 
-        # table: a large plane at z = 0 with the scene's procedural texture, tiled
+    def _add_table(self, texture_seed: int) -> None:
+        """The table: a TABLE_SIZE_M square plane at z = 0 with the scene's procedural texture, tiled
+        every TABLE_TILE_M; id colour 0 (background)."""
         half, reps = TABLE_SIZE_M / 2, TABLE_SIZE_M / TABLE_TILE_M
-        timg = _image_from_array("table_tex", table_texture(appearance["table"]["texture_seed"]))
+        timg = _image_from_array("table_tex", table_texture(texture_seed))
         tmat = _textured_material("table_mat", timg, roughness=0.7)
         table, _ = _mesh_object("table", np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]]),
                                 np.array([[0, 1, 2], [0, 2, 3]]), np.array([[0, 0], [reps, 0], [reps, reps], [0, reps]]),
                                 tmat)
         table.color = (0.0, 0.0, 0.0, 1.0)
 
-        # lights and world
+    def _add_lights(self, appearance: dict) -> None:
+        """Sun (direction from elevation and azimuth, deg), area light aimed at the world origin (position in m)
+        and the world background, from ``appearance`` (see :func:`sample_appearance`)."""
+        import bpy
+        import mathutils
+
+        sc = self.scene
         sun_p = appearance["sun"]
         sun = bpy.data.lights.new("sun", "SUN")
         sun.energy = sun_p["strength"]
@@ -257,21 +283,27 @@ class BlenderScene:
         bg.inputs["Strength"].default_value = appearance["world"]["strength"]
         sc.world = world
 
-        # camera with the requested intrinsics (horizontal sensor fit; principal point at the centre)
+    def _add_camera(self):
+        """The scene camera with the focal length of K (horizontal sensor fit, principal point at the
+        centre, clipping 0.01–50 m); placed by :meth:`set_camera`."""
+        import bpy
+
         cam = bpy.data.cameras.new("camera")
         cam.sensor_fit = "HORIZONTAL"
         cam.sensor_width = 36.0
-        cam.lens = self.K[0, 0] * cam.sensor_width / width
+        cam.lens = self.K[0, 0] * cam.sensor_width / self.width
         cam.clip_start, cam.clip_end = 0.01, 50.0
-        self.camera = bpy.data.objects.new("camera", cam)
-        sc.collection.objects.link(self.camera)
-        sc.camera = self.camera
+        camera = bpy.data.objects.new("camera", cam)
+        self.scene.collection.objects.link(camera)
+        self.scene.camera = camera
+        return camera
 
-        # compositor for the ground-truth pass: depth and flat colour to 32-bit EXR in a temporary folder
-        self._tmp = Path(tempfile.mkdtemp(prefix="selfseg_render_"))
-        self._sigints: list[int] = []  # SIGINTs noted while rendering (see __enter__)
+    def _add_ground_truth_outputs(self) -> None:
+        """Compositor for the ground-truth pass: depth (m) and flat colour to 32-bit EXR in the temporary folder."""
+        import bpy
+
         tree = bpy.data.node_groups.new("gt_outputs", "CompositorNodeTree")
-        sc.compositing_node_group = tree
+        self.scene.compositing_node_group = tree
         rl = tree.nodes.new("CompositorNodeRLayers")
         out = tree.nodes.new("CompositorNodeOutputFile")
         out.directory = str(self._tmp) + os.sep
@@ -284,9 +316,6 @@ class BlenderScene:
         out.file_output_items.new("RGBA", "ids")
         tree.links.new(rl.outputs["Depth"], out.inputs["depth"])
         tree.links.new(rl.outputs["Image"], out.inputs["ids"])
-        self._gpu = False
-        if cfg.renderer == "cycles":
-            self._setup_cycles(seed)
 
     def _setup_cycles(self, seed: int) -> None:
         cy = self.scene.cycles
