@@ -278,7 +278,9 @@ def _model_surface(vbg, tc: TrackingConfig, timings: dict[str, float]):
 
 def _final_surface(vbg, video: Video, cfg: ReconConfig, fused: int, timings: dict[str, float]):
     """Points (N×3 float32, m), colours (N×3 float32 in [0, 1]) and unit normals (N×3 float64) of the
-    fused surface, world frame; sets ``extract_s``."""
+    fused surface, world frame, in lexicographic order of (x, y, z, colour, normal); sets ``extract_s``.
+    (Open3D returns the same points in a different order on every run, and the over-segmentation
+    downstream depends on the order: sorting makes the reconstruction, and all that follows, reproducible.)"""
     t0 = time.perf_counter()
     pcd = vbg.extract_point_cloud(cfg.weight_threshold)
     timings["extract_s"] = time.perf_counter() - t0
@@ -289,7 +291,8 @@ def _final_surface(vbg, video: Video, cfg: ReconConfig, fused: int, timings: dic
     cols = np.clip(pcd.point.colors.numpy(), 0, 1).astype(np.float32)
     nrm = pcd.point.normals.numpy().astype(np.float64)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    return pts, cols, nrm
+    order = np.lexsort(np.hstack([pts, cols, nrm]).T[::-1])  # last key is primary: x, then y, z, ...
+    return pts[order], cols[order], nrm[order]
 
 
 def reconstruct(video: Video, cfg: ReconConfig, progress: bool = True) -> Reconstruction:

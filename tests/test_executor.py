@@ -295,7 +295,7 @@ def test_executor_section_of_the_yaml_config(tiny_dataset, tmp_path, capsys, sec
 @pytest.mark.slow
 def test_evaluate3d_on_a_cluster_survives_a_killed_worker(cluster, tiny_dataset, tmp_path):
     """evaluate3d's per-video stages as tasks on a joined 2-CPU cluster, one task's worker killed mid-stage:
-    Ray re-runs it and Table II equals the local run's (reconstruction is not bit-reproducible: ±.005)."""
+    Ray re-runs it and Table II equals the local run's."""
     cmd = [sys.executable, "-m", "selfseg.eval.table2", "--data", str(tiny_dataset), "--rows", "lccp+symseg",
            "--quiet"]
     local = subprocess.run([*cmd, "--out", str(tmp_path / "local")], capture_output=True, text=True, timeout=900)
@@ -308,5 +308,4 @@ def test_evaluate3d_on_a_cluster_survives_a_killed_worker(cluster, tiny_dataset,
     assert run.returncode == 0, stderr
     (a,), (b,) = (list(_fold_records(tmp_path / d).values()) for d in ("local", "ray"))
     assert a["name"] == b["name"] == "lccp+symseg" and a["config_hash"] == b["config_hash"]
-    for k in ("P", "R", "IoU"):
-        assert b["metrics"][k] == pytest.approx(a["metrics"][k], abs=0.005)
+    assert b["metrics"] == a["metrics"] and b["per_video"] == a["per_video"]
