@@ -10,8 +10,23 @@ are equal. The matching step's merges come from its ``diagnostics.json``
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 SUMMARY_KEYS = ("n", "q25", "median", "q75", "max")
+
+
+def merge_same_instance(edges: np.ndarray, seg_inst: np.ndarray) -> np.ndarray:
+    """Ground-truth merging, the most a matching step could merge: the group (int64, 0..G−1) of each
+    segment when every graph edge (``edges`` E×2 segment pairs) whose two segments have the same non-zero
+    majority instance (``seg_inst``, see :func:`segment_instances`) is merged; segments merge only
+    through such edges, as matched subgraphs are connected."""
+    inst = np.asarray(seg_inst, dtype=np.int64)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    e = e[(inst[e[:, 0]] == inst[e[:, 1]]) & (inst[e[:, 0]] != 0)]
+    n = len(inst)
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 def segment_instances(seg_labels: np.ndarray, gt_inst: np.ndarray, n_segments: int) -> np.ndarray:

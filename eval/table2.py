@@ -1,14 +1,17 @@
 """``evaluate3d``: Table II, the 3-D segmentations of the reconstructed scenes scored against GT points.
 
     evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
-               [--rows lccp,lccp+symseg,ours-matching] [--quiet] [--executor local|ray] [--ray-address ADDR]
+               [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--quiet] [--executor local|ray] [--ray-address ADDR]
 
 Rows (each a result record with ``task = "3d"``, named after the row):
 
 - ``lccp``: the LCCP over-segmentation alone (``overseg.use_symseg=False``);
 - ``lccp+symseg``: the pipeline's over-segmentation (LCCP + SymSeg, the ``overseg`` stage);
 - ``ours-matching``: the per-point object pseudo-labels after graph matching and pruning (needs φ1,
-  trained with the config's ``phi1_train`` schedule).
+  trained with the config's ``phi1_train`` schedule);
+- ``gt-merging`` (a diagnostic, not in the paper): ``lccp+symseg`` with every segment-graph edge whose two
+  segments share their majority GT instance merged (:func:`~selfseg.eval.merges.merge_same_instance`):
+  the most a perfect matching and pruning step could merge on this over-segmentation.
 
 The pipeline (:class:`selfseg.method.pipeline.Ours`) runs on **all** videos of the dataset as one
 unlabeled collection, under :func:`~selfseg.dataset.ground_truth_forbidden`: no labels are used, so
@@ -39,7 +42,7 @@ from selfseg.config import ConfigError, load_config
 from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
                              invert_T, transform_points)
 from selfseg.eval.aggregate import fmt
-from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances
+from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
 from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
@@ -47,7 +50,8 @@ from selfseg.fileio import FileFormatError
 from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
 from selfseg.method.recon_stage import ReconStage
 
-ROWS = ROWS_3D
+GT_MERGING = "gt-merging"  # lccp+symseg with the ground truth's merges (a ceiling for matching)
+ROWS = (*ROWS_3D, GT_MERGING)
 FOLD = "all"  # one collection of every video: no labels are used, so there are no folds
 TABLE_KEYS = ("P", "R", "IoU", "overlap_P", "overlap_R", "overlap_F")
 DRIFT_KEYS = ("drift_pos_mean_m", "drift_pos_max_m", "drift_rot_mean_deg")
@@ -76,7 +80,7 @@ def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dic
                "drift_rot_mean_deg": float(np.mean(rot))}
 
 
-def segment_scenes(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, executor: cf.Executor | None = None
+def segment_scenes(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS_3D, executor: cf.Executor | None = None
                    ) -> Segmentations3D:
     """The pipeline's 3-D segmentations of every video of ``dataset`` (:meth:`Ours.segment_3d`), asked for
     with the dataset's ground truth guarded; its stages live in ``out``'s evaluate layout (shared with
@@ -128,7 +132,7 @@ def format_matching(m: dict) -> str:
 
 def _row_seconds(row: str, seconds: dict[str, float]) -> float:
     steps = {"lccp": ("recon_overseg_s", "lccp_s"), "lccp+symseg": ("recon_overseg_s",),
-             "ours-matching": ("recon_overseg_s", "phi1_s", "pseudo_s")}[row]
+             "ours-matching": ("recon_overseg_s", "phi1_s", "pseudo_s"), GT_MERGING: ("recon_overseg_s",)}[row]
     return sum(seconds.get(k, 0.0) for k in steps)
 
 
@@ -144,10 +148,20 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
     out = Path(out)
-    seg = segment_scenes(dataset, config, out, rows, executor)
+    seg = segment_scenes(dataset, config, out, tuple(r for r in rows if r in ROWS_3D) or ("lccp+symseg",), executor)
     scenes, seconds = seg.scenes, seg.seconds
 
     aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in scenes}
+    gt_inst = {}  # GT instance per reconstructed point, for the rows scored with it
+    if "ours-matching" in rows or GT_MERGING in rows:
+        gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
+                                               s.video_id, max_dist_m, None if models is None else models[s.video_id])
+                   for s in scenes}
+    if GT_MERGING in rows:
+        for s in scenes:
+            labels = np.asarray(s.graph.labels)
+            group = merge_same_instance(s.graph.edges, segment_instances(labels, gt_inst[s.video_id], s.graph.n_segments))
+            s.labels[GT_MERGING] = np.where(labels >= 0, group[np.maximum(labels, 0)], -1)
     n_frames = sum(len(s.recon.frame_ids) for s in scenes)
     records = []
     for row in rows:
@@ -175,9 +189,6 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
                         "score_s": round(score_s, 4), "steps_s": {k: round(v, 4) for k, v in seconds.items()}},
         }
         if row == "ours-matching":
-            gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
-                                                   s.video_id, max_dist_m, None if models is None else models[s.video_id])
-                       for s in scenes}
             record["matching"] = matching_record(dataset, seg, gt_inst)
         write_result(out, record, ev.records)
         records.append(record)

@@ -26,6 +26,7 @@ METHODS: dict[str, str] = {
     "ours-v2": "selfseg.method.pipeline:OursV2",
     "ours-v3": "selfseg.method.pipeline:OursV3",
     "ours-v4": "selfseg.method.pipeline:OursV4",
+    "ours-gt-merging": "selfseg.baselines.gt_merging:OursGTMerging",
     "picie": "selfseg.baselines.picie:Picie",
     "stego": "selfseg.baselines.stego:Stego",
     "uois-sim": "selfseg.baselines.uois:UoisSim",

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from selfseg.eval.merges import cosine_by_object, merge_scores, segment_instances, summary
+from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, segment_instances, summary
 from selfseg.method.matching import SceneGraph
 from selfseg.method.pruning import MatchDecision, NodeDecision
 from selfseg.method.pseudolabels import diagnostics, merge_segments
@@ -88,3 +88,26 @@ def test_cosine_by_object_known_answers():
     assert c["different_object"]["n"] == 3 and c["different_object"]["max"] == pytest.approx(2 ** -0.5)
     assert c["different_object"]["median"] == pytest.approx(2 ** -0.5)
     assert summary([]) == {"n": 0, "q25": None, "median": None, "q75": None, "max": None}
+
+
+def test_merge_same_instance_known_answers():
+    # segments 0, 1 (instance 1) share an edge: merged; 2 (instance 1) touches only 3 (instance 2): kept apart;
+    # 4, 5 lie mostly on no object (instance 0): never merged, even along an edge
+    groups = merge_same_instance(np.array([[0, 1], [2, 3], [4, 5], [1, 3]]), np.array([1, 1, 1, 2, 0, 0]))
+    assert groups[0] == groups[1]
+    assert len({groups[i] for i in (0, 2, 3, 4, 5)}) == 5
+    # no edges: every segment its own group
+    assert merge_same_instance(np.zeros((0, 2), np.int64), np.array([1, 1, 2])).tolist() == [0, 1, 2]
+    # a chain of one instance through three segments merges all three
+    assert len(set(merge_same_instance(np.array([[0, 1], [1, 2]]), np.array([7, 7, 7])))) == 1
+
+
+def test_segment_votes_majority_over_frames():
+    from selfseg.baselines.gt_merging import segment_votes
+
+    seg_a = np.array([[0, 0, 1], [1, -1, 2]])
+    inst_a = np.array([[3, 3, 0], [5, 5, 0]])
+    seg_b = np.array([[1, 1, 1], [2, 2, -1]])
+    inst_b = np.array([[5, 5, 5], [0, 0, 4]])
+    # segment 0: instance 3 (2 px); segment 1: 0, 5, 5, 5, 5 → 5; segment 2: 0, 0, 0 → 0; segment 3: no pixel → 0
+    assert segment_votes([seg_a, seg_b], [inst_a, inst_b], 4).tolist() == [3, 5, 0, 0]

@@ -5,6 +5,7 @@ import pytest
 from analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset, ground_truth_forbidden
+from selfseg.baselines.gt_merging import OursGTMerging
 from selfseg.method.pipeline import Ours, OursConfig, OursV2, OursV2Config, read_label_map
 
 FAST = ["net.width=8", "net.aspp_channels=32", "net.decoder_channels=32", "net.low_level_channels=16",
@@ -74,3 +75,19 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
         v2.fit(train)
     assert v2.weights_path.parent.parent.name == "phi1"  # φ1 from the shared cache, not retrained
     assert {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
+
+    # the ground-truth merging ceiling (reads ground truth) reuses the same per-video stages; its labels are
+    # the over-segments relabelled by their merged group, and it refuses videos without ground truth
+    gtm = OursGTMerging(load_config(OursConfig, overrides=FAST), tmp_path / "work" / "ours-gt-merging")
+    gtm.stage_root = stage_root
+    with pytest.raises(TypeError, match="LabeledVideo"):
+        gtm.label_source(train)
+    source, identity = gtm.label_source([ds.labeled(v) for v in ds.video_ids[:2]])
+    assert {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
+    for i in range(0, len(source), 5):
+        video, fid, _ = source.items[i]
+        seg = read_label_map(stages / "overseg" / video.video_id / "segmaps" / f"{fid:06d}.png")
+        _, lab = source[i]
+        groups = np.asarray(identity["groups"][video.video_id])
+        assert np.array_equal(lab, np.where(seg >= 0, groups[np.maximum(seg, 0)], -1))
+        assert purity(lab, video.inst(fid)) > 0.9
