@@ -95,14 +95,32 @@ def test_ids_out_of_range_are_one_line_errors(analytic_dataset, tmp_path):
                  progress=False)
 
 
+# depth-clustering made slow (0.3 s a frame), so the run cannot finish its last folds before the signal
+# lands, however loaded the machine (plain depth-clustering scored folds 1–2 within the 50 ms poll in CI)
+SLOW_METHOD = """
+import time
+from selfseg.baselines.simple import DepthClustering
+
+class SlowDepthClustering(DepthClustering):
+    name = "slow-depth-clustering"
+
+    def segment(self, video, frame_id, fg_mask):
+        time.sleep(0.3)
+        return super().segment(video, frame_id, fg_mask)
+"""
+
+
 @pytest.mark.slow
 def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset, tmp_path, ctrl_c_child):
-    evaluate_bin = [sys.executable, "-m", "selfseg.eval.cli", "--method", "depth-clustering", "--data",
-                    str(analytic_dataset), "--frame-stride", "1", "--quiet"]
+    (tmp_path / "userpath").mkdir()
+    (tmp_path / "userpath" / "slowmethod.py").write_text(SLOW_METHOD)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "userpath")}
+    evaluate_bin = [sys.executable, "-m", "selfseg.eval.cli", "--method", "slowmethod:SlowDepthClustering",
+                    "--name", "slow-depth-clustering", "--data", str(analytic_dataset), "--frame-stride", "1", "--quiet"]
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(evaluate_bin + ["--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, **ctrl_c_child)
-    fold0 = out / "scores/analytic/depth-clustering/fold0.json"
+                            text=True, env=env, **ctrl_c_child)
+    fold0 = out / "scores/analytic/slow-depth-clustering/fold0.json"
     deadline = time.monotonic() + 120
     while not fold0.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -110,12 +128,12 @@ def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert len(err.strip().splitlines()) == 1 and "interrupted" in err, err
-    assert fold0.exists() and not (out / "scores/analytic/depth-clustering/fold2.json").exists()
-    resumed = subprocess.run(evaluate_bin + ["--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert fold0.exists() and not (out / "scores/analytic/slow-depth-clustering/fold2.json").exists()
+    resumed = subprocess.run(evaluate_bin + ["--out", str(out)], capture_output=True, text=True, timeout=300, env=env)
     fresh = subprocess.run(evaluate_bin + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True,
-                           timeout=300)
+                           timeout=300, env=env)
     assert resumed.returncode == 0 and fresh.returncode == 0, resumed.stderr + fresh.stderr
     for k in range(3):
-        a, b = (json.loads((root / f"scores/analytic/depth-clustering/fold{k}.json").read_text())
+        a, b = (json.loads((root / f"scores/analytic/slow-depth-clustering/fold{k}.json").read_text())
                 for root in (out, tmp_path / "fresh"))
         assert a["metrics"] == b["metrics"] and a["per_video"] == b["per_video"]
