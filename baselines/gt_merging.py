@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from selfseg.dataset import LabeledVideo, Video
-from selfseg.eval.merges import merge_same_instance
+from selfseg.eval.merges import merge_same_instance, relabel
 from selfseg.method.pipeline import (LABEL_MAP_PNG, SEGMAPS_DIR, SEGMENTS_NPZ, Ours, OursConfig, read_label_map)
 from selfseg.method.segment_graph import SegmentGraph
 from selfseg.method.train import FrameLabelSource
@@ -52,7 +52,7 @@ class OursGTMerging(Ours):
 
         def load(video: Video, fid: int) -> np.ndarray:
             m = read_label_map(cache.path("overseg", video.video_id) / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=fid))
-            return np.where(m >= 0, groups[video.video_id][np.maximum(m, 0)], -1).astype(np.int32)
+            return relabel(m, groups[video.video_id]).astype(np.int32)
 
         source = FrameLabelSource([(v, f, load) for v in train_videos for f in self.training_frames(v)])
         return source, {"gt_merging": [cache.key_hash("overseg", v.video_id) for v in train_videos],

@@ -30,7 +30,7 @@ import numpy as np
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset, transform_points
-from selfseg.eval.merges import merge_same_instance, segment_instances, summary
+from selfseg.eval.merges import merge_same_instance, relabel, segment_instances, summary
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.table2 import alignment, matching_record, segment_scenes
 from selfseg.fileio import read_json, write_json
@@ -120,8 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     base = {s.video_id: s.labels["lccp+symseg"] for s in seg.scenes}
     gt_merged = {}
     for s in seg.scenes:
-        group = merge_same_instance(s.graph.edges, seg_inst[s.video_id])
-        gt_merged[s.video_id] = np.where(s.graph.labels >= 0, group[np.maximum(s.graph.labels, 0)], -1)
+        gt_merged[s.video_id] = relabel(s.graph.labels, merge_same_instance(s.graph.edges, seg_inst[s.video_id]))
     rows.append({"features": "–", "mode": "lccp+symseg", "IoU": table2_iou(dataset, seg, aligned, base)})
     rows.append({"features": "ground truth", "mode": "gt-merging", "IoU": table2_iou(dataset, seg, aligned, gt_merged)})
     feats = {"phi1": {s.video_id: s.features for s in seg.scenes},

@@ -29,6 +29,12 @@ def merge_same_instance(edges: np.ndarray, seg_inst: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
+def relabel(labels: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """Segment labels (any shape, −1 = none) → their groups' labels (``group[s]``), −1 kept."""
+    labels = np.asarray(labels)
+    return np.where(labels >= 0, np.asarray(group)[np.maximum(labels, 0)], -1)
+
+
 def segment_instances(seg_labels: np.ndarray, gt_inst: np.ndarray, n_segments: int) -> np.ndarray:
     """Majority GT instance (int64) of each of ``n_segments`` segments; per point ``seg_labels`` (−1 = none)
     and ``gt_inst`` (0 = no object); 0 for a segment without points or with mostly unlabeled points."""

@@ -42,7 +42,7 @@ from selfseg.config import ConfigError, load_config
 from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
                              invert_T, transform_points)
 from selfseg.eval.aggregate import fmt
-from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, segment_instances
+from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
 from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
@@ -159,9 +159,8 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
                    for s in scenes}
     if GT_MERGING in rows:
         for s in scenes:
-            labels = np.asarray(s.graph.labels)
-            group = merge_same_instance(s.graph.edges, segment_instances(labels, gt_inst[s.video_id], s.graph.n_segments))
-            s.labels[GT_MERGING] = np.where(labels >= 0, group[np.maximum(labels, 0)], -1)
+            inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
+            s.labels[GT_MERGING] = relabel(s.graph.labels, merge_same_instance(s.graph.edges, inst))
     n_frames = sum(len(s.recon.frame_ids) for s in scenes)
     records = []
     for row in rows:

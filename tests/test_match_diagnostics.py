@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, segment_instances, summary
+from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances, summary
 from selfseg.method.matching import SceneGraph
 from selfseg.method.pruning import MatchDecision, NodeDecision
 from selfseg.method.pseudolabels import diagnostics, merge_segments
@@ -96,6 +96,8 @@ def test_merge_same_instance_known_answers():
     groups = merge_same_instance(np.array([[0, 1], [2, 3], [4, 5], [1, 3]]), np.array([1, 1, 1, 2, 0, 0]))
     assert groups[0] == groups[1]
     assert len({groups[i] for i in (0, 2, 3, 4, 5)}) == 5
+    # per-point labels follow their segment's group; −1 (no segment) stays −1
+    assert relabel(np.array([[1, -1], [5, 0]]), groups).tolist() == [[groups[1], -1], [groups[5], groups[0]]]
     # no edges: every segment its own group
     assert merge_same_instance(np.zeros((0, 2), np.int64), np.array([1, 1, 2])).tolist() == [0, 1, 2]
     # a chain of one instance through three segments merges all three
