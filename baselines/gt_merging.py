@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from selfseg.dataset import LabeledVideo, Video
-from selfseg.eval.merges import merge_same_instance, relabel
+from selfseg.eval.merges import merge_same_instance, relabel, segment_instances
 from selfseg.method.pipeline import (LABEL_MAP_PNG, SEGMAPS_DIR, SEGMENTS_NPZ, Ours, OursConfig, read_label_map)
 from selfseg.method.segment_graph import SegmentGraph
 from selfseg.method.train import FrameLabelSource
@@ -21,12 +21,8 @@ from selfseg.method.train import FrameLabelSource
 def segment_votes(segmaps: list[np.ndarray], insts: list[np.ndarray], n_segments: int) -> np.ndarray:
     """Majority GT instance (int64) of each of ``n_segments`` segments from frames' segment maps (int, −1 =
     none) and instance maps (0 = background): the instance most of its labelled pixels show; 0 if none."""
-    n_inst = int(max((m.max(initial=0) for m in insts), default=0)) + 1
-    counts = np.zeros(n_segments * n_inst, np.int64)
-    for seg, inst in zip(segmaps, insts):
-        keep = seg >= 0
-        counts += np.bincount(seg[keep].astype(np.int64) * n_inst + inst[keep], minlength=n_segments * n_inst)
-    return counts.reshape(n_segments, n_inst).argmax(axis=1).astype(np.int64)
+    return segment_instances(np.concatenate([m.ravel() for m in segmaps]),
+                             np.concatenate([m.ravel() for m in insts]), n_segments)
 
 
 class OursGTMerging(Ours):
