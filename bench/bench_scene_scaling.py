@@ -21,11 +21,11 @@ from pathlib import Path
 from selfseg.config import load_config
 from selfseg.dataset import Dataset, ground_truth_forbidden
 from selfseg.eval.aggregate import SegmentationEvaluator
-from selfseg.eval.protocol import select_test_frames
+from selfseg.eval.protocol import EvalOptions, select_test_frames
 from selfseg.fileio import write_json
 from selfseg.registry import get_method_class
 
-FRAME_STRIDE = 10  # as evaluate's default protocol
+FRAME_STRIDE = EvalOptions.frame_stride  # evaluate's default protocol
 
 
 def run_size(ds: Dataset, method: str, config, n: int, test_ids: list[str], work: Path) -> dict:
