@@ -1,7 +1,7 @@
 """``evaluate3d``: Table II, the 3-D segmentations of the reconstructed scenes scored against GT points.
 
     evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
-               [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--quiet] [--executor local|ray] [--ray-address ADDR]
+               [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--stats] [--quiet] [--executor local|ray] [--ray-address ADDR]
 
 Rows (each a result record with ``task = "3d"``, named after the row):
 
@@ -42,11 +42,12 @@ from selfseg.config import ConfigError, load_config
 from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
                              invert_T, transform_points)
 from selfseg.eval.aggregate import fmt
+from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
-from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
+from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
 from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
 from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
-from selfseg.fileio import FileFormatError
+from selfseg.fileio import FileFormatError, write_json
 from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
 from selfseg.method.recon_stage import ReconStage
 
@@ -55,6 +56,7 @@ ROWS = (*ROWS_3D, GT_MERGING)
 FOLD = "all"  # one collection of every video: no labels are used, so there are no folds
 TABLE_KEYS = ("P", "R", "IoU", "overlap_P", "overlap_R", "overlap_F")
 DRIFT_KEYS = ("drift_pos_mean_m", "drift_pos_max_m", "drift_rot_mean_deg")
+STATS_JSON = "stats/{dataset}/{config_hash}.json"  # evaluate3d --stats: the data statistics of a dataset + config
 
 
 def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dict]:
@@ -136,6 +138,47 @@ def _row_seconds(row: str, seconds: dict[str, float]) -> float:
     return sum(seconds.get(k, 0.0) for k in steps)
 
 
+def labeled_scenes(dataset: Dataset, config: OursConfig, out: Path, rows, models: dict[str, dict] | None,
+                   max_dist_m: float, executor: cf.Executor | None, gt_labels: bool
+                   ) -> tuple[Segmentations3D, dict[str, tuple[np.ndarray, dict]], dict[str, np.ndarray]]:
+    """The pipeline's segmentations of ``rows`` (``gt-merging`` built from ``lccp+symseg``), each video's
+    alignment to the dataset's world frame (:func:`alignment`) and, with ``gt_labels``, the GT instance of
+    every reconstructed point ({} otherwise)."""
+    seg = segment_scenes(dataset, config, out,
+                         tuple(r for r in rows if r in ROWS_3D) or ("lccp+symseg",), executor)
+    aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in seg.scenes}
+    gt_inst = {}
+    if gt_labels or GT_MERGING in rows:
+        gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
+                                               s.video_id, max_dist_m, None if models is None else models[s.video_id])
+                   for s in seg.scenes}
+    if GT_MERGING in rows:
+        for s in seg.scenes:
+            inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
+            s.labels[GT_MERGING] = relabel(s.graph.labels, merge_same_instance(s.graph.edges, inst))
+    return seg, aligned, gt_inst
+
+
+def run_stats(dataset: Dataset, config: OursConfig, out: Path, models: dict[str, dict] | None = None,
+              max_dist_m: float = GT_MAX_DIST_M, executor: cf.Executor | None = None) -> dict:
+    """The data statistics of :mod:`selfseg.eval.datastats` for every video (rows ``lccp``, ``lccp+symseg``
+    and ``gt-merging``), written to ``out``/:data:`STATS_JSON`; returns the record."""
+    rows = ("lccp", "lccp+symseg", GT_MERGING)
+    seg, aligned, gt_inst = labeled_scenes(dataset, config, out, rows, models, max_dist_m, executor, gt_labels=True)
+    scenes = {}
+    for s in tqdm(seg.scenes, desc="data statistics", unit="video"):
+        T = aligned[s.video_id][0]
+        gt = gt_scene(dataset, s.video_id, None if models is None else models[s.video_id])
+        views = view_stats(dataset, s.video_id)
+        scenes[s.video_id] = scene_stats(transform_points(s.recon.points_w, T), s.labels, gt_inst[s.video_id], gt,
+                                         views)
+        scenes[s.video_id]["pose_drift"] = aligned[s.video_id][1]
+    record = {**provenance(Ours.name, "data-stats", config, dataset, "stats"), "scenes": scenes,
+              "overall": overall_stats(scenes), "options": {"max_dist_m": max_dist_m}}
+    write_json(Path(out) / STATS_JSON.format(dataset=dataset.name, config_hash=record["config_hash"]), record)
+    return record
+
+
 def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, models: dict[str, dict] | None = None,
                max_dist_m: float = GT_MAX_DIST_M, progress: bool = True,
                executor: cf.Executor | None = None) -> list[dict]:
@@ -148,19 +191,9 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
     out = Path(out)
-    seg = segment_scenes(dataset, config, out, tuple(r for r in rows if r in ROWS_3D) or ("lccp+symseg",), executor)
+    seg, aligned, gt_inst = labeled_scenes(dataset, config, out, rows, models, max_dist_m, executor,
+                                           gt_labels="ours-matching" in rows or GT_MERGING in rows)
     scenes, seconds = seg.scenes, seg.seconds
-
-    aligned = {s.video_id: alignment(s.recon, dataset.labeled(s.video_id)) for s in scenes}
-    gt_inst = {}  # GT instance per reconstructed point, for the rows scored with it
-    if "ours-matching" in rows or GT_MERGING in rows:
-        gt_inst = {s.video_id: gt_point_labels(transform_points(s.recon.points_w, aligned[s.video_id][0]), dataset,
-                                               s.video_id, max_dist_m, None if models is None else models[s.video_id])
-                   for s in scenes}
-    if GT_MERGING in rows:
-        for s in scenes:
-            inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
-            s.labels[GT_MERGING] = relabel(s.graph.labels, merge_same_instance(s.graph.edges, inst))
     n_frames = sum(len(s.recon.frame_ids) for s in scenes)
     records = []
     for row in rows:
@@ -216,6 +249,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
     p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
+    p.add_argument("--stats", action="store_true",
+                   help="instead of Table II: the data statistics (touching objects, LCCP and LCCP + SymSeg P/R/IoU, "
+                        "the gt-merging ceiling, segments per object, where recall goes, reconstruction error, "
+                        "camera distance, object size in pixels) per video and overall, written to "
+                        "OUT/" + STATS_JSON)
     add_executor_arguments(p, "per-video stages (reconstruction, over-segmentation), matching and registrations")
     return p
 
@@ -227,20 +265,27 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(OursConfig, args.config, args.overrides)
         rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
         where = executor_config(args, args.config)
+        run = (lambda ex: run_stats(dataset, config, args.out, executor=ex)) if args.stats else \
+            (lambda ex: run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=ex))
         if not where.distributed:
-            records = run_table2(dataset, config, args.out, rows, progress=not args.quiet)
+            result = run(None)
         else:
             with make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
                                num_gpus=where.ray_gpus_per_task) as executor:
                 args.out.mkdir(parents=True, exist_ok=True)
                 check_shared_folder(executor, args.out)
-                records = run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=executor)
+                result = run(executor)
     except GroundTruthAccessError as e:
         print(f"evaluate3d: error: the pipeline tried to read ground truth: {e}", file=sys.stderr)
         return 2
     except (ConfigError, DatasetError, FileFormatError, FileNotFoundError, ExecutorError) as e:
         print(f"evaluate3d: error: {e}", file=sys.stderr)
         return 2
+    if args.stats:
+        print(format_stats({**result, "dataset": dataset.name}))
+        print("statistics: " + str(args.out / STATS_JSON.format(dataset=dataset.name, config_hash=result["config_hash"])))
+        return 0
+    records = result
     print(format_table(records))
     for r in records:
         if "matching" in r:

@@ -438,6 +438,137 @@ PAPER_SUBSET: tuple[str, ...] = ("lamp", "dumbbell", "mug", "bowl", "bottle", "p
                                  "cheese_wedge")
 
 
+# ---- the `paper` library: chunky multi-part toys ------------------------------------------
+# In the spirit of the paper's HomebrewedDB toys (issue 22): 6–20 cm, every part a convex primitive at
+# least ~2 cm thick, parts meeting at concave creases (where LCCP splits an object into parts that
+# graph matching can join again), one distinct texture per part.
+def _sphere_part(obj: str, part: str, r: float, centre, tex: tuple) -> _Part:
+    a = np.radians(np.linspace(-90, 90, 25))
+    prof = np.c_[r * np.cos(a), r + r * np.sin(a)]
+    return _revolved_part(obj, part, prof, tex).transformed(_tr(centre[0], centre[1], centre[2] - r))
+
+
+def _cylinder_part(obj: str, part: str, r: float, length: float, tex: tuple, T: np.ndarray) -> _Part:
+    """A bevelled cylinder along +z from z = 0 to ``length``, then placed by ``T``."""
+    return _revolved_part(obj, part, _rounded_cylinder(r, length, min(0.003, r / 3)), tex).transformed(T)
+
+
+def _prism(points_xz, y0: float, y1: float) -> np.ndarray:
+    """Corners of a prism: a convex polygon in the xz plane extruded from y0 to y1 (m)."""
+    p = np.asarray(points_xz, dtype=np.float64)
+    return np.vstack([np.c_[p[:, 0], np.full(len(p), y), p[:, 1]] for y in (y0, y1)])
+
+
+def _toy_car() -> ObjectModel:
+    n = "toy_car"
+    parts = [_box_part(n, "body", (0.14, 0.065, 0.035), ("solid", ("red", "dark_red")), _tr(0, 0, 0.0375)),
+             _box_part(n, "cabin", (0.07, 0.055, 0.03), ("checks", ("white", "blue")), _tr(-0.01, 0, 0.07))]
+    for k, (x, y) in enumerate([(0.045, 0.035), (0.045, -0.035), (-0.045, 0.035), (-0.045, -0.035)]):
+        parts.append(_cylinder_part(n, f"wheel{k}", 0.02, 0.02, ("dots", ("black", "grey")),
+                                    _tr(x, y + (0.01 if y > 0 else -0.01), 0.02) @ _rot("x", 90)))
+    return _assemble(n, parts, True)
+
+
+def _toy_rocket() -> ObjectModel:
+    n = "toy_rocket"
+    body = _revolved_part(n, "body", [(0, 0), (0.025, 0), (0.025, 0.10), (0.012, 0.135), (0, 0.145)],
+                          ("stripes", ("white", "red")))
+    fin = _prism([(0.02, 0.0), (0.055, 0.0), (0.02, 0.05)], -0.01, 0.01)
+    fins = [_faceted_part(n, f"fin{k}", fin, ("solid", ("blue", "navy")), _rot("z", 120 * k)) for k in range(3)]
+    return _assemble(n, [body, *fins], True)
+
+
+def _snowman() -> ObjectModel:
+    n = "snowman"
+    return _assemble(n, [_sphere_part(n, "bottom", 0.045, (0, 0, 0.045), ("speckle", ("white", "grey"))),
+                         _sphere_part(n, "middle", 0.035, (0, 0, 0.115), ("dots", ("white", "black"))),
+                         _sphere_part(n, "head", 0.025, (0, 0, 0.17), ("noise", ("white", "orange")))], True)
+
+
+def _toy_robot() -> ObjectModel:
+    n = "toy_robot"
+    parts = [_box_part(n, "torso", (0.06, 0.04, 0.07), ("label", ("silver", "blue"), "BOT"), _tr(0, 0, 0.075)),
+             _box_part(n, "head", (0.04, 0.035, 0.035), ("plaid", ("yellow", "black")), _tr(0, 0, 0.1275))]
+    parts += [_box_part(n, f"leg{k}", (0.025, 0.03, 0.04), ("solid", ("navy", "blue")), _tr(x, 0, 0.02))
+              for k, x in enumerate((0.0175, -0.0175))]
+    parts += [_box_part(n, f"arm{k}", (0.02, 0.025, 0.06), ("stripes", ("orange", "grey")), _tr(x, 0, 0.08))
+              for k, x in enumerate((0.04, -0.04))]
+    return _assemble(n, parts, True)
+
+
+def _mushroom() -> ObjectModel:
+    n = "mushroom"
+    stem = _revolved_part(n, "stem", [(0, 0), (0.022, 0), (0.02, 0.05), (0, 0.05)], ("wood", ("beige", "tan")))
+    cap = _revolved_part(n, "cap", [(0, 0.045), (0.048, 0.045), (0.052, 0.055), (0.047, 0.07), (0.032, 0.085),
+                                    (0, 0.092)], ("dots", ("red", "white")))
+    return _assemble(n, [stem, cap], True)
+
+
+def _toy_house() -> ObjectModel:
+    n = "toy_house"
+    body = _box_part(n, "walls", (0.08, 0.07, 0.06), ("checks", ("beige", "brown")), _tr(0, 0, 0.03))
+    roof = _faceted_part(n, "roof", _prism([(-0.05, 0.055), (0.05, 0.055), (0.05, 0.065), (0.0, 0.10), (-0.05, 0.065)],
+                                           -0.05, 0.05), ("diag_stripes", ("dark_red", "terracotta")), _rot("z", 90))
+    chimney = _box_part(n, "chimney", (0.02, 0.02, 0.035), ("solid", ("grey", "black")), _tr(0.02, 0.02, 0.095))
+    return _assemble(n, [body, roof, chimney], True)
+
+
+def _block_l() -> ObjectModel:
+    n = "block_l"
+    return _assemble(n, [_box_part(n, "long", (0.12, 0.04, 0.04), ("solid", ("lime", "green")), _tr(0, 0, 0.02)),
+                         _box_part(n, "foot", (0.04, 0.04, 0.04), ("diag_stripes", ("purple", "magenta")),
+                                   _tr(-0.04, 0.04, 0.02))], True)
+
+
+def _toy_dumbbell() -> ObjectModel:
+    n = "toy_dumbbell"
+    return _assemble(n, [_sphere_part(n, "ball0", 0.035, (0.065, 0, 0.035), ("marble", ("teal", "cyan"))),
+                         _cylinder_part(n, "bar", 0.012, 0.12, ("solid", ("gold", "yellow")),
+                                        _tr(-0.06, 0, 0.035) @ _rot("y", 90)),
+                         _sphere_part(n, "ball1", 0.035, (-0.065, 0, 0.035), ("marble", ("pink", "magenta")))], True)
+
+
+def _toy_tank() -> ObjectModel:
+    n = "toy_tank"
+    return _assemble(n, [_box_part(n, "hull", (0.14, 0.08, 0.04), ("noise", ("dark_green", "green")), _tr(0, 0, 0.02)),
+                         _cylinder_part(n, "turret", 0.035, 0.025, ("speckle", ("tan", "brown")), _tr(-0.01, 0, 0.04)),
+                         _cylinder_part(n, "barrel", 0.01, 0.075, ("stripes", ("black", "grey")),
+                                        _tr(0.015, 0, 0.0525) @ _rot("y", 90))], True)
+
+
+def _toy_plane() -> ObjectModel:
+    n = "toy_plane"
+    a = np.radians(np.linspace(-90, 90, 13))
+    cap = np.c_[0.02 * np.cos(a[:7]), 0.02 + 0.02 * np.sin(a[:7])]
+    fuselage = _revolved_part(n, "fuselage", np.vstack([cap, cap[::-1] * [1, -1] + [0, 0.16]]),
+                              ("label", ("white", "navy"), "AIR")).transformed(_tr(-0.08, 0, 0.02) @ _rot("y", 90))
+    wings = _box_part(n, "wings", (0.04, 0.16, 0.02), ("solid", ("orange", "yellow")), _tr(0.01, 0, 0.02))
+    tail = _box_part(n, "tail", (0.03, 0.02, 0.04), ("checks", ("red", "white")), _tr(-0.06, 0, 0.045))
+    return _assemble(n, [fuselage, wings, tail], True)
+
+
+def _pawn() -> ObjectModel:
+    n = "pawn"
+    body = _revolved_part(n, "body", [(0, 0), (0.035, 0), (0.035, 0.015), (0.026, 0.022), (0.016, 0.065), (0.025, 0.07),
+                                      (0.025, 0.076), (0, 0.078)], ("gradient", ("purple", "pink")))
+    head = _sphere_part(n, "head", 0.022, (0, 0, 0.095), ("solid", ("pink", "purple")))
+    return _assemble(n, [body, head], True)
+
+
+def _toy_hammer() -> ObjectModel:
+    n = "toy_hammer"
+    return _assemble(n, [_cylinder_part(n, "handle", 0.012, 0.13, ("wood", ("tan", "brown")),
+                                        _tr(-0.07, 0, 0.0175) @ _rot("y", 90)),
+                         _box_part(n, "head", (0.035, 0.09, 0.035), ("plaid", ("blue", "cyan")), _tr(0.075, 0, 0.0175))],
+                     True)
+
+
+def paper_library() -> list[ObjectModel]:
+    """The `paper` library: 12 chunky multi-part toys and the pybullet_data duck, in a fixed order."""
+    return [_toy_car(), _toy_rocket(), _snowman(), _toy_robot(), _mushroom(), _toy_house(), _block_l(),
+            _toy_dumbbell(), _toy_tank(), _toy_plane(), _pawn(), _toy_hammer(), _duck()]
+
+
 # ---- user meshes ---------------------------------------------------------------------------
 def _pick_mesh(folder: Path) -> Path:
     """The one mesh to use from an object subfolder (YCB layout: google_16k/textured.obj)."""

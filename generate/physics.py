@@ -34,6 +34,12 @@ class PhysicsConfig:
 
     table_half_extent_m: float = 0.35  # the table top is a square of side 2× this, centred at the origin
     drop_radius_m: float = 0.15  # objects start above a disc of this radius around the table centre
+    # "pile": each object starts at a random point of the disc, above whatever is there (clutter, contact);
+    # "spread": it starts where its bounding circle keeps spread_gap_m from every body already dropped (in
+    # x, y; the best of spread_tries random points when none does), just above the table (contact is rare)
+    layout: str = "pile"
+    spread_gap_m: float = 0.01
+    spread_tries: int = 200
     drop_height_m: float = 0.03  # clearance of an object's bounding sphere above the table ...
     drop_gap_m: float = 0.01  # ... and above the bounding boxes of the objects below it
     drop_interval_steps: int = 60  # objects are dropped one after another, this many steps apart
@@ -54,6 +60,12 @@ class PhysicsConfig:
     penetration_report_m: float = 0.002  # pairs deeper than this are listed in DropResult.penetrations
     contact_distance_m: float = 0.002  # pairs closer than this are listed in DropResult.contacts
     vhacd_resolution: int = 100000  # voxels for VHACD (5–13 s per mesh at 100000)
+
+    def __post_init__(self) -> None:
+        if self.layout not in ("pile", "spread"):
+            raise ValueError(f"physics.layout must be 'pile' or 'spread', got {self.layout!r}")
+        if self.spread_tries < 1:
+            raise ValueError(f"physics.spread_tries must be at least 1, got {self.spread_tries}")
 
 
 @dataclass
@@ -179,15 +191,35 @@ def _random_rotation(rng: np.random.Generator) -> list[float]:
     return (q / np.linalg.norm(q)).tolist()
 
 
+def _disc_point(rng: np.random.Generator, radius_m: float) -> np.ndarray:
+    """A uniform random point (x, y) of the disc of ``radius_m`` around the table centre."""
+    a, r = rng.uniform(0, 2 * np.pi), radius_m * np.sqrt(rng.uniform())
+    return np.array([r * np.cos(a), r * np.sin(a)])
+
+
+def _xy_gaps(xy: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Distance (m) in x, y from ``xy`` to each axis-aligned box (lo, hi); 0 inside."""
+    return np.array([np.linalg.norm(np.maximum(0.0, np.maximum(lo[:2] - xy, xy - hi[:2]))) for lo, hi in boxes])
+
+
 def _start_position(cid: int, radius: float, ids: dict[int, int], rng: np.random.Generator,
-                   cfg: PhysicsConfig) -> list[float]:
-    """A centre above the drop disc whose bounding sphere clears the table and every body's AABB."""
-    a, r = rng.uniform(0, 2 * np.pi), cfg.drop_radius_m * np.sqrt(rng.uniform())
-    xy = np.array([r * np.cos(a), r * np.sin(a)])
+                    cfg: PhysicsConfig) -> list[float]:
+    """A centre above the drop disc whose bounding sphere clears the table and every body's AABB
+    (see :attr:`PhysicsConfig.layout`)."""
+    boxes = [tuple(np.asarray(c) for c in pb.getAABB(body, physicsClientId=cid)) for body in ids.values()]
+    xy = _disc_point(rng, cfg.drop_radius_m)
+    if cfg.layout == "spread" and boxes:
+        best = -np.inf
+        for _ in range(cfg.spread_tries):
+            clearance = float(_xy_gaps(xy, boxes).min()) - radius
+            if clearance > best:
+                best, chosen = clearance, xy
+            if clearance >= cfg.spread_gap_m:
+                break
+            xy = _disc_point(rng, cfg.drop_radius_m)
+        xy = chosen
     z = cfg.drop_height_m + radius
-    for body in ids.values():
-        lo, hi = (np.asarray(c) for c in pb.getAABB(body, physicsClientId=cid))
-        gap = np.linalg.norm(np.maximum(0.0, np.maximum(lo[:2] - xy, xy - hi[:2])))  # xy distance to the box
+    for (lo, hi), gap in zip(boxes, _xy_gaps(xy, boxes)):
         if gap < radius + cfg.drop_gap_m:
             z = max(z, hi[2] + radius + cfg.drop_gap_m)
     return [float(xy[0]), float(xy[1]), float(z)]

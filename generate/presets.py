@@ -20,6 +20,7 @@ from selfseg.generate.physics import PhysicsConfig
 from selfseg.generate.render import RenderConfig
 
 GENERATOR_VERSION = "selfseg.generate 1"
+LIBRARIES = ("builtin", "paper")  # the object libraries built in code (generate/objects.py)
 
 
 @dataclass
@@ -56,7 +57,8 @@ class GenerateConfig:
     width: int = 160
     height: int = 120
     objects_per_scene: int = 4
-    objects_dir: str | None = None  # folder of user meshes; None = the builtin library
+    library: str = "builtin"  # "builtin" (25 objects) or "paper" (chunky multi-part toys, issue 22)
+    objects_dir: str | None = None  # folder of user meshes; None = the `library`
     object_pool: list[str] | None = None  # names of library objects to use; None = all of them
     min_kept_fraction: float = 0.75  # re-drop a scene if fewer than this share of its objects stay on the table
     seed: int = 0
@@ -70,6 +72,8 @@ class GenerateConfig:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.width > 4096 or self.height > 4096:
             raise ValueError(f"resolution {self.width}x{self.height} is larger than 4096x4096")
+        if self.library not in LIBRARIES:
+            raise ValueError(f"library must be one of {', '.join(LIBRARIES)}, got {self.library!r}")
         if not 0.0 < self.min_kept_fraction <= 1.0:
             raise ValueError(f"min_kept_fraction must be in (0, 1], got {self.min_kept_fraction}")
 
@@ -97,6 +101,10 @@ PRESETS: dict[str, dict] = {
     "small": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8},
     "benchmark": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 6,
                   "object_pool": BENCHMARK_POOL, "orbit": CLOSE_ORBIT},
+    # issue 22: the paper's Table II statistics, on development seeds: the `paper` toys, contact rare
+    "calibrated": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8,
+                   "library": "paper", "orbit": CLOSE_ORBIT,
+                   "physics": {"layout": "spread", "drop_radius_m": 0.25, "spread_gap_m": 0.01}},
     "paper-synthetic": {"scenes": 36, "frames": 800, "width": 640, "height": 480, "objects_per_scene": 12,
                         "object_pool": None},  # filled with PAPER_SUBSET by preset_config
 }

@@ -82,9 +82,12 @@ def _scene_center(objects: list[ObjectModel], poses: list[np.ndarray]) -> tuple[
 def load_library(cfg: GenerateConfig) -> list[ObjectModel]:
     """The dataset's objects, in obj_id order (obj_id = index + 1): the builtin library or the user
     folder, restricted to ``cfg.object_pool``. Raises ValueError for unknown names or too few objects."""
-    from selfseg.generate.objects import builtin_library, load_user_objects
+    from selfseg.generate.objects import builtin_library, load_user_objects, paper_library
 
-    objects = load_user_objects(cfg.objects_dir) if cfg.objects_dir is not None else builtin_library()
+    if cfg.objects_dir is not None:
+        objects = load_user_objects(cfg.objects_dir)
+    else:
+        objects = paper_library() if cfg.library == "paper" else builtin_library()
     if cfg.object_pool is not None:
         by_name = {o.name: o for o in objects}
         missing = [n for n in cfg.object_pool if n not in by_name]
@@ -92,10 +95,24 @@ def load_library(cfg: GenerateConfig) -> list[ObjectModel]:
             raise ValueError(f"object_pool names {missing} are not in the library ({', '.join(by_name)})")
         objects = [by_name[n] for n in cfg.object_pool]
     if cfg.objects_per_scene > len(objects):
-        where = cfg.objects_dir or "the builtin library" + (" pool" if cfg.object_pool is not None else "")
+        where = cfg.objects_dir or f"the {cfg.library} library" + (" pool" if cfg.object_pool is not None else "")
         raise ValueError(f"{cfg.objects_per_scene} objects per scene requested but {where} has only "
                          f"{len(objects)} objects")
     return objects
+
+
+def drop_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], cache_dir: Path | None = None):
+    """Scene ``index``'s objects dropped onto the table: (seed, its generator, positioned after the drop for the
+    orbit and appearance draws, the chosen library indices, the :class:`DropResult`, and the kept instances as
+    (inst_id, library index, T_world_obj) with instance k ≥ 1 the k-th object kept on the table)."""
+    seed = scene_seed(cfg.seed, index)
+    rng = np.random.default_rng(seed)
+    k = cfg.objects_per_scene
+    chosen = choose_objects(rng, len(library), k)
+    drop = drop_objects([library[i] for i in chosen], seed, cfg.physics, cache_dir=cache_dir,
+                        min_kept=max(1, math.ceil(cfg.min_kept_fraction * k)))
+    instances = [(n + 1, chosen[j], drop.poses[j]) for n, j in enumerate(sorted(drop.poses))]
+    return seed, rng, chosen, drop, instances
 
 
 def generate_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], final_dir: str | Path,
@@ -105,16 +122,9 @@ def generate_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], 
     Object ids are library index + 1; instance k ≥ 1 is the k-th object kept on the table.
     """
     timings = dict.fromkeys(STAGES, 0.0)
-    seed = scene_seed(cfg.seed, index)
-    rng = np.random.default_rng(seed)
-    k = cfg.objects_per_scene
-    chosen = choose_objects(rng, len(library), k)
     t0 = time.perf_counter()
-    drop = drop_objects([library[i] for i in chosen], seed, cfg.physics, cache_dir=cache_dir,
-                        min_kept=max(1, math.ceil(cfg.min_kept_fraction * k)))
+    seed, rng, chosen, drop, instances = drop_scene(cfg, index, library, cache_dir)
     timings["physics"] = time.perf_counter() - t0
-    kept = sorted(drop.poses)  # indices into `chosen`
-    instances = [(n + 1, chosen[j], drop.poses[j]) for n, j in enumerate(kept)]  # (inst_id, library index, T_world_obj)
     center, extent = _scene_center([library[li] for _, li, _ in instances], [T for _, _, T in instances])
     K = intrinsics(cfg.width, cfg.height, cfg.orbit.hfov_deg)
     vfov = math.degrees(2 * math.atan(cfg.height / 2 / K[1, 1]))

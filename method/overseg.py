@@ -5,7 +5,7 @@ points out of the LCCP segments it overlaps (splitting them) and becomes one seg
 the LCCP segments inside it), except when LCCP segments inside it have their own symmetry about
 the same axis (a bottle standing in a bowl); :func:`fuse_symmetries` gives the exact rule.
 Without a detected symmetry the LCCP result is kept. Segments with fewer than
-``min_segment_points`` points are pruned (label −1).
+``min_segment_points`` points (or covering less than ``min_segment_area_cm2`` at the cloud's density) are pruned (label −1).
 """
 from __future__ import annotations
 
@@ -24,7 +24,10 @@ class OversegConfig:
     lccp: LCCPConfig = field(default_factory=LCCPConfig)
     symseg: SymSegConfig = field(default_factory=SymSegConfig)
     use_symseg: bool = True
-    min_segment_points: int = 200
+    min_segment_points: int = 200  # the paper's pruning: segments with fewer points are dropped ...
+    # ... unless this is > 0: then the threshold is this area (cm²) times the cloud's measured density
+    # (points per cm², :func:`surface_density_per_cm2`), so it means the same at every voxel size
+    min_segment_area_cm2: float = 0.0
 
 
 def fuse_symmetries(lccp_labels: np.ndarray, points: np.ndarray, normals: np.ndarray, symmetries: list[Symmetry],
@@ -112,6 +115,24 @@ def _split_among_own(piece: np.ndarray, pts: np.ndarray, own: list[int], radius:
     return np.array([lut[p] for p in piece.tolist()], np.int64)
 
 
+def surface_density_per_cm2(points: np.ndarray, radius_m: float = 0.01, sample: int = 2000, seed: int = 0) -> float:
+    """Points per cm² of surface: the median number of points within ``radius_m`` of a point (at most ``sample``
+    points asked, chosen with ``seed``) over the area π r² of a flat disc of that radius."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return 0.0
+    query = pts if len(pts) <= sample else pts[np.random.default_rng(seed).choice(len(pts), sample, replace=False)]
+    counts = cKDTree(pts).query_ball_point(query, radius_m, return_length=True)
+    return float(np.median(counts) / (np.pi * (radius_m * 100.0) ** 2))
+
+
+def min_points(points: np.ndarray, cfg: OversegConfig) -> int:
+    """The pruning threshold in points: ``min_segment_points``, or the area threshold at the cloud's density."""
+    if cfg.min_segment_area_cm2 <= 0:
+        return cfg.min_segment_points
+    return max(1, int(round(cfg.min_segment_area_cm2 * surface_density_per_cm2(points))))
+
+
 def prune_small(labels: np.ndarray, min_points: int) -> np.ndarray:
     """Labels of segments with fewer than ``min_points`` points set to −1; the rest renumbered 0..S−1 by size."""
     labels = np.asarray(labels)
@@ -134,5 +155,5 @@ def oversegment(points: np.ndarray, normals: np.ndarray, colors: np.ndarray | No
     if cfg.use_symseg and normals is not None and (labels >= 0).any():
         syms = detect_rotational_symmetries(points, normals, labels, occupancy, cfg.symseg)
         labels = fuse_symmetries(labels, points, normals, syms, cfg.symseg)
-    out = prune_small(labels, cfg.min_segment_points)
+    out = prune_small(labels, min_points(points, cfg))
     return (out, syms) if return_symmetries else out

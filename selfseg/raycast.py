@@ -64,18 +64,22 @@ class RaycastScene:
         normals_cam = ans["primitive_normals"].numpy() @ R  # world → camera: n_cam = R^T n_world
         return depth, inst, normals_cam.astype(np.float32)
 
-    def nearest_id(self, points: np.ndarray, max_dist_m: float) -> np.ndarray:
-        """Id of the nearest mesh surface for each world point, or 0 if farther than ``max_dist_m``."""
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (m) to the nearest mesh surface and that mesh's id, for each world point (N×3, m)."""
         import open3d as o3d
 
+        points = np.asarray(points, dtype=np.float64)
         scene, geom_ids = self._o3d_scene()
-        ans = scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, dtype=np.float32)))
-        closest = ans["points"].numpy()
+        ans = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
         gid = ans["geometry_ids"].numpy().astype(np.int64)
         id_of_geom = np.zeros(int(geom_ids.max()) + 2, dtype=np.int64)
         id_of_geom[geom_ids] = self.ids
-        dist = np.linalg.norm(closest - points, axis=1)
-        return np.where(dist <= max_dist_m, id_of_geom[gid], 0)
+        return np.linalg.norm(ans["points"].numpy() - points, axis=1), id_of_geom[gid]
+
+    def nearest_id(self, points: np.ndarray, max_dist_m: float) -> np.ndarray:
+        """Id of the nearest mesh surface for each world point, or 0 if farther than ``max_dist_m``."""
+        dist, ids = self.closest(points)
+        return np.where(dist <= max_dist_m, ids, 0)
 
 
 def backproject(depth_m: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -109,3 +109,16 @@ def test_lccp_frame_baseline_on_an_analytic_frame(tmp_path):
         assert cnt.max() / cnt.sum() > 0.8
         assert (gt[pred == top] == k).mean() > 0.9
     assert len(np.unique(pred[fg])) >= 3
+
+
+def test_density_scaled_pruning_threshold():
+    """Pruning by area: 16 random points per cm² of a plane; 5 cm² then means ~80 points, 4 per cm² ~20."""
+    from selfseg.method.overseg import OversegConfig, min_points, surface_density_per_cm2
+
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(0, 0.2, (6400, 2)), np.zeros(6400)]  # 400 cm², 16 per cm²
+    assert surface_density_per_cm2(pts) == pytest.approx(16.0, rel=0.1)
+    assert surface_density_per_cm2(pts[:1600]) == pytest.approx(4.0, rel=0.15)
+    assert min_points(pts, OversegConfig(min_segment_area_cm2=5.0)) == pytest.approx(80, rel=0.1)
+    assert min_points(pts[:1600], OversegConfig(min_segment_area_cm2=5.0)) == pytest.approx(20, rel=0.15)
+    assert min_points(pts, OversegConfig()) == 200  # area 0: the paper's fixed count

@@ -175,3 +175,29 @@ def test_load_user_objects_errors(tmp_path):
     trimesh.creation.box(extents=(100, 50, 30)).export(mm / "big.ply")
     with pytest.raises(ObjectLibraryError, match="big.ply: .*metres"):
         load_user_objects(mm)
+
+
+def test_paper_library_is_chunky_multipart_and_distinct():
+    """The `paper` toys (issue 22): 6–20 cm, several convex parts each ≥ ~2 cm thick, one texture per part."""
+    from selfseg.generate.objects import paper_library
+
+    toys = paper_library()
+    names = [o.name for o in toys]
+    assert len(names) == len(set(names)) >= 12 and not set(names) & (set(o.name for o in builtin_library()) - {"duck"})
+    for o in toys:
+        size_cm = (o.vertices.max(0) - o.vertices.min(0)).max() * 100
+        assert 6 <= size_cm <= 20.5, f"{o.name}: {size_cm:.1f} cm"
+        assert o.nonconvex and o.collision_parts
+        if o.name != "duck":
+            assert len(o.part_names) >= 2, o.name
+            for v, _ in o.collision_parts:  # each convex piece is at least 1.9 cm thick along its thinnest axis
+                c = v - v.mean(0)
+                axis = np.linalg.eigh(c.T @ c)[1][:, 0]
+                assert np.ptp(c @ axis) >= 0.019, f"{o.name}: a part {np.ptp(c @ axis) * 100:.1f} cm thin"
+    small = [np.asarray(Image.fromarray(o.texture).resize((32, 32)), dtype=np.float64) for o in toys]
+    for i in range(len(toys)):
+        for j in range(i + 1, len(toys)):
+            assert np.abs(small[i] - small[j]).mean() > 20, f"{names[i]} and {names[j]} look alike"
+    again = paper_library()
+    assert all(np.array_equal(a.vertices, b.vertices) and np.array_equal(a.texture, b.texture)
+               for a, b in zip(toys, again))
