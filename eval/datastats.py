@@ -177,29 +177,35 @@ def overall_stats(scenes: dict[str, dict]) -> dict:
     return out
 
 
+STATS_HEAD = ["scene", "objs", "touch", "LCCP P", "R", "IoU", "+Sym P", "R", "IoU", "gt-merge", "segs/obj", "split",
+              "none", "lost prune", "other", "own", "err mm", ">1cm", "cover", "cam m", "obj px"]
+
+
+def stats_line(name: str, s: dict) -> list[str]:
+    """One table line of a scene's statistics or of :func:`overall_stats` (touch: pairs, or mean per scene)."""
+    r, b = s["rows"], s["breakdown"].get("lccp", {})
+    f = lambda x: "–" if x is None or x != x else f"{x:.3f}"  # noqa: E731
+    touch = s.get("touching_pairs_per_scene", len(s["touching_pairs"]) if isinstance(s["touching_pairs"], list) else 0)
+    cam, px = s.get("camera_distance_m", {}), s.get("object_px", {})
+    return [name, str(s["objects"]), f"{touch:.2g}",
+            *(f(r.get(row, {}).get(k)) for row in ("lccp", "lccp+symseg") for k in ("P", "R", "IoU")),
+            f(r.get("gt-merging", {}).get("IoU")), f"{b.get('segments_per_object', float('nan')):.2f}",
+            f(b.get("split_share")), str(b.get("no_segment", "–")), *(f(b.get(f"lost_{k}")) for k in LOSS_KEYS),
+            f"{s['reconstruction']['error_median_mm']:.1f}", f(s["reconstruction"]["artifact_share"]),
+            f(s["reconstruction"]["coverage"]), "–" if cam.get("median") is None else f"{cam['median']:.2f}",
+            "–" if px.get("median") is None else f"{px['median']:.0f}"]
+
+
+def stats_table(lines: list[list[str]], first: str = "scene") -> str:
+    """Right-aligned columns under :data:`STATS_HEAD` (its first heading replaced by ``first``)."""
+    head = [first] + STATS_HEAD[1:]
+    widths = [max(len(x) for x in col) for col in zip(head, *lines)]
+    fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
+    return "\n".join([fmt(head), *map(fmt, lines)])
+
+
 def format_stats(stats: dict) -> str:
     """A table: one line per scene and one for all of them."""
-    def line(name: str, s: dict, touching: float) -> list[str]:
-        r, b = s["rows"], s["breakdown"].get("lccp", {})
-        f = lambda x: "–" if x is None or x != x else f"{x:.3f}"  # noqa: E731
-        cam = s.get("camera_distance_m", {})
-        px = s.get("object_px", {})
-        return [name, str(s["objects"]), f"{touching:g}",
-                *(f(r.get(row, {}).get(k)) for row in ("lccp", "lccp+symseg") for k in ("P", "R", "IoU")),
-                f(r.get("gt-merging", {}).get("IoU")), f"{b.get('segments_per_object', float('nan')):.2f}",
-                f(b.get("split_share")), str(b.get("no_segment", "–")),
-                *(f(b.get(f"lost_{k}")) for k in LOSS_KEYS),
-                f"{s['reconstruction']['error_median_mm']:.1f}", f(s["reconstruction"]["artifact_share"]),
-                f(s["reconstruction"]["coverage"]),
-                "–" if cam.get("median") is None else f"{cam['median']:.2f}",
-                "–" if px.get("median") is None else f"{px['median']:.0f}"]
-
-    head = ["scene", "objs", "touch", "LCCP P", "R", "IoU", "+Sym P", "R", "IoU", "gt-merge", "segs/obj", "split",
-            "none", "lost prune", "other", "own", "err mm", ">1cm", "cover", "cam m", "obj px"]
-    body = [line(v, s, len(s["touching_pairs"])) for v, s in stats["scenes"].items()]
-    body.append(line("all", stats["overall"], stats["overall"]["touching_pairs_per_scene"]))
-    widths = [max(len(x) for x in col) for col in zip(head, *body)]
-    fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
-    return "\n".join([f"Data statistics of {stats['dataset']} (lccp columns: segments per object, split ≥ 2, "
-                      "objects with no segment, recall lost; touch: per scene, overall mean)",
-                      fmt(head), *map(fmt, body)])
+    lines = [stats_line(v, s) for v, s in stats["scenes"].items()] + [stats_line("all", stats["overall"])]
+    return (f"Data statistics of {stats['dataset']} (lccp columns: segments per object, split ≥ 2, objects with no "
+            f"segment, recall lost; touch: pairs per scene)\n" + stats_table(lines))

@@ -27,7 +27,7 @@ from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.objects import write_models
-from selfseg.generate.presets import GENERATOR_VERSION, PRESETS, GenerateConfig, preset_config
+from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
@@ -55,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=_resolution, help="image size WxH, e.g. 320x240")
     p.add_argument("--objects-per-scene", type=int, help="objects dropped per scene")
     p.add_argument("--objects", type=Path, help="folder of user meshes (OBJ/PLY/GLB, metres) instead of the builtin library")
+    p.add_argument("--library", choices=list(LIBRARIES), help="object library built in code: builtin (25 objects) or "
+                   "paper (chunky multi-part toys); default: the preset's")
     p.add_argument("--renderer", choices=["cycles", "workbench"], help="image renderer (default: cycles)")
     p.add_argument("--object-pool", type=lambda v: [n.strip() for n in v.split(",") if n.strip()],
                    help="comma-separated object names to draw from (e.g. a set disjoint from another dataset's, "
@@ -82,7 +84,7 @@ def config_from_args(args: argparse.Namespace) -> GenerateConfig:
     return preset_config(args.preset, scenes=args.scenes, frames=args.frames, frame_step=args.frame_step,
                          width=width, height=height, objects_per_scene=args.objects_per_scene,
                          objects_dir=str(args.objects.resolve()) if args.objects else None, seed=args.seed,
-                         object_pool=args.object_pool,
+                         object_pool=args.object_pool, library=args.library,
                          render={"renderer": args.renderer} if args.renderer else None)
 
 
