@@ -49,7 +49,7 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     ``boxes[i]`` = (y0, y1, x0, x1), which is what is resized to ``image_size``; pixels outside it get
     zero vectors. A None box means the whole frame.
     ``fg_masks`` (``TrainConfig.mask_background``): bool H×W per frame; the network sees RGB_MEAN
-    outside it, at its input scale (:func:`mask_input`).
+    outside it (:func:`mask_input`, before and after resizing, as augment does).
     """
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
@@ -60,10 +60,10 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
             out[i, :, y0:y1, x0:x1] = embed_frames(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device,
                                                    image_size, fg_masks=fg)[0]
         return out
-    x = torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    x = mask_input(torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0), fg_masks)
     h, w = x.shape[2:]
     if image_size <= 0 or max(h, w) == image_size:
-        return net(mask_input(x, fg_masks))
+        return net(x)
     s = image_size / max(h, w)
     small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
                           align_corners=False, antialias=s < 1)

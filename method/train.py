@@ -272,6 +272,8 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
     if box is not None:
         y0, y1, x0, x1 = box
         img, lab, fgm = img[y0:y1, x0:x1], lab[y0:y1, x0:x1], fgm[y0:y1, x0:x1]
+    if cfg.mask_background:  # before resizing too, so that no background blends into the object's edge
+        img[~fgm] = np.asarray(RGB_MEAN, np.float32)
     h, w = lab.shape
     base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
     s = base * rng.uniform(*cfg.scale_range)
