@@ -407,3 +407,33 @@ def test_label_source_checks_label_maps(analytic_dataset):
         src[0]
     with pytest.raises(ValueError, match="at least one"):
         FrameLabelSource([])
+
+
+@pytest.mark.slow
+def test_ours_masks_with_its_own_reconstructed_foreground(tmp_path):
+    """`ours` with mask_background: φ1, its segment features and φ2 train on the recon stage's projected
+    foreground masks (never ground truth, all under the guard); the masks are the stage's files."""
+    from selfseg.config import load_config
+    from selfseg.method.pipeline import Ours, OursConfig
+    from selfseg.method.recon_stage import load_recon
+
+    root = make_dataset(tmp_path / "dense", two_box_scenes()[:2], n_frames=20, width=160, height=120, arc_deg=30)
+    ds = Dataset(root)
+    fast = ["net.width=8", "net.aspp_channels=16", "net.decoder_channels=16", "net.low_level_channels=8",
+            "pseudo.match.workers=1", "frame_stride=4", "feature_stride=4"]
+    for phase in ("train", "phi1_train"):
+        fast += [f"{phase}.steps=4", f"{phase}.batch_size=2", f"{phase}.crop=[64, 96]", f"{phase}.image_size=160",
+                 f"{phase}.fg_crop=true", f"{phase}.mask_background=true"]
+    method = Ours(load_config(OursConfig, overrides=fast), tmp_path / "work")
+    train = [ds.video(v) for v in ds.video_ids]
+    with ground_truth_forbidden(root):
+        source, _ = method.label_source(train)
+        cache = method.stage_cache(train)
+        for i in range(0, len(source), 3):
+            video, fid, _ = source.items[i]
+            assert np.array_equal(source.foreground(i), load_recon(cache.path("recon", video.video_id)).fg_mask(fid))
+        method.fit(train)
+    fg_est = source.foreground(0)
+    video, fid, _ = source.items[0]
+    gt_fg = ds.labeled(video.video_id).inst(fid) > 0
+    assert (fg_est & gt_fg).sum() > 0.8 * gt_fg.sum() and not np.array_equal(fg_est, gt_fg)  # close, not GT
