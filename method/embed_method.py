@@ -81,14 +81,16 @@ class EmbeddingMethodBase(Method):
 
     def embed(self, rgb: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:
         """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale; with
-        ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it)."""
+        ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it; with
+        ``train.mask_background``, on the frame with everything outside ``fg_mask`` masked out)."""
         from selfseg.method.features import embed_frames, foreground_box
 
         if self._net is None:
             raise RuntimeError(f"method {self.name!r} has no trained network: call fit() or load() first")
         train = self.network_train_config()
         boxes = None if train.crop_margin is None or fg_mask is None else [foreground_box(fg_mask, train.crop_margin)]
-        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes)[0].float().cpu().numpy()
+        masks = [fg_mask] if train.mask_background and fg_mask is not None else None
+        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes, masks)[0].float().cpu().numpy()
 
     def network_train_config(self) -> TrainConfig:
         """The training settings of the network that segments (its scale and foreground crop)."""

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from selfseg.dataset import Video
-from selfseg.method.network import EmbeddingNet
+from selfseg.method.network import RGB_MEAN, EmbeddingNet
 
 
 def foreground_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int] | None:
@@ -24,9 +24,23 @@ def foreground_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]
     return max(0, y0 - pad), min(h, y1 + pad), max(0, x0 - pad), min(w, x1 + pad)
 
 
+def mask_input(x: torch.Tensor, fg_masks: list[np.ndarray] | None) -> torch.Tensor:
+    """B×3×h×w network input in [0, 1] with every pixel outside the foreground set to RGB_MEAN (what
+    ``TrainConfig.mask_background`` trains on); ``fg_masks``: B bool H×W masks, resized to h×w by nearest
+    neighbour (as augment resizes them) if the input was resized. None: ``x`` unchanged."""
+    if fg_masks is None:
+        return x
+    m = torch.from_numpy(np.stack([np.asarray(f, bool) for f in fg_masks])).to(x.device)[:, None].float()
+    if m.shape[2:] != x.shape[2:]:
+        m = F.interpolate(m, size=x.shape[2:], mode="nearest")
+    mean = torch.tensor(RGB_MEAN, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+    return torch.where(m > 0.5, x, mean)
+
+
 @torch.inference_mode()
 def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0,
-                 boxes: list[tuple[int, int, int, int] | None] | None = None) -> torch.Tensor:
+                 boxes: list[tuple[int, int, int, int] | None] | None = None,
+                 fg_masks: list[np.ndarray] | None = None) -> torch.Tensor:
     """uint8 H×W×3 frames (same size) → B×D×H×W unit embeddings on ``device``.
 
     ``image_size`` > 0: the frames are resized so their longer side is ``image_size`` (the scale the
@@ -34,33 +48,40 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     ``boxes`` (foreground crops, see ``TrainConfig.fg_crop``): frame i is embedded only inside
     ``boxes[i]`` = (y0, y1, x0, x1), which is what is resized to ``image_size``; pixels outside it get
     zero vectors. A None box means the whole frame.
+    ``fg_masks`` (``TrainConfig.mask_background``): bool H×W per frame; the network sees RGB_MEAN
+    outside it (:func:`mask_input`, before and after resizing, as augment does).
     """
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
         out = torch.zeros(len(rgbs), net.cfg.embed_dim, h, w, device=device)
         for i, (rgb, box) in enumerate(zip(rgbs, boxes)):
             y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
+            fg = None if fg_masks is None else [np.ascontiguousarray(fg_masks[i][y0:y1, x0:x1])]
             out[i, :, y0:y1, x0:x1] = embed_frames(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device,
-                                                   image_size)[0]
+                                                   image_size, fg_masks=fg)[0]
         return out
-    x = torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    x = mask_input(torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0), fg_masks)
     h, w = x.shape[2:]
     if image_size <= 0 or max(h, w) == image_size:
         return net(x)
     s = image_size / max(h, w)
     small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
                           align_corners=False, antialias=s < 1)
-    return F.normalize(F.interpolate(net(small), size=(h, w), mode="bilinear", align_corners=False), dim=1)
+    return F.normalize(F.interpolate(net(mask_input(small, fg_masks)), size=(h, w), mode="bilinear",
+                                     align_corners=False), dim=1)
 
 
 def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segmaps: dict[int, np.ndarray],
                      n_segments: int, device: str | torch.device = "cpu", batch_size: int = 4,
-                     image_size: int = 0, fg_crop_margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     image_size: int = 0, fg_crop_margin: float | None = None,
+                     fg_masks: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mean embedding of every segment over all its pixels in ``frame_ids``, L2-normalised.
 
     segmaps: frame id → int H×W map, −1 = no segment, 0..n_segments−1 = segment id (the 3D segment
     projected into the frame). Returns (features float32 S×D, seen bool S); segments that appear in
     no frame get a zero row and ``seen = False``. ``image_size``: as in :func:`embed_frames`.
+    ``fg_masks``: frame id → bool H×W foreground (``TrainConfig.mask_background``): the background is
+    masked out of the input and the foreground crop box is the mask's, not the segments'.
     """
     net.eval()
     dim = net.cfg.embed_dim
@@ -76,8 +97,10 @@ def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segm
             if m.max(initial=-1) >= n_segments or m.min(initial=0) < -1:
                 raise ValueError(f"segment map of frame {f} has ids outside [-1, {n_segments - 1}]")
             maps.append(m)
-        boxes = None if fg_crop_margin is None else [foreground_box(m >= 0, fg_crop_margin) for m in maps]
-        emb = embed_frames(net, [video.rgb(f) for f in fids], device, image_size, boxes)  # B×D×H×W
+        fgs = None if fg_masks is None else [np.asarray(fg_masks[f], bool) for f in fids]
+        boxes = None if fg_crop_margin is None else [foreground_box(m >= 0 if fgs is None else fgs[i], fg_crop_margin)
+                                                     for i, m in enumerate(maps)]
+        emb = embed_frames(net, [video.rgb(f) for f in fids], device, image_size, boxes, fgs)  # B×D×H×W
         lab = torch.from_numpy(np.stack(maps).astype(np.int64)).to(device)
         keep = lab >= 0
         sums.index_add_(0, lab[keep], emb.permute(0, 2, 3, 1)[keep].double())

@@ -184,6 +184,18 @@ def _map_loader(folder_of: dict[str, Path]):
     return load
 
 
+def _fg_loader(cache: StageCache):
+    """Foreground loader for :class:`FrameLabelSource`: the recon stage's projected foreground mask of the
+    frame (the method's own, never ground truth), for ``TrainConfig.mask_background``."""
+    recons: dict[str, ReconStage] = {}
+
+    def load(video: Video, fid: int) -> np.ndarray:
+        if video.video_id not in recons:
+            recons[video.video_id] = load_recon(cache.path("recon", video.video_id))
+        return recons[video.video_id].fg_mask(fid)
+    return load
+
+
 class Ours(EmbeddingMethodBase):
     """The paper's method: φ1 on over-segments → graph matching → pseudo-labels → φ2 + mean-shift."""
 
@@ -222,7 +234,8 @@ class Ours(EmbeddingMethodBase):
     def train_phi1(self, videos: list[Video], cache: StageCache) -> Path:
         """Train φ1 on the over-segment maps of ``videos`` (cached by settings and stage keys); returns its weights."""
         segmaps = {v.video_id: cache.path("overseg", v.video_id) / SEGMAPS_DIR for v in videos}
-        source = FrameLabelSource([(v, f, _map_loader(segmaps)) for v in videos for f in self.training_frames(v)])
+        source = FrameLabelSource([(v, f, _map_loader(segmaps)) for v in videos for f in self.training_frames(v)],
+                                  foreground=_fg_loader(cache))
         key = {"phi1": to_dict(self.config.phi1_train), "net": to_dict(self.config.net),
                "frame_stride": self.config.frame_stride,
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
@@ -248,10 +261,11 @@ class Ours(EmbeddingMethodBase):
             graph = SegmentGraph.load(seg_dir / SEGMENTS_NPZ)
             frames = v.frame_ids[::cfg.feature_stride]
             segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f)) for f in frames}
+            recons.append(load_recon(cache.path("recon", v.video_id)))
+            fgs = {f: recons[-1].fg_mask(f) for f in frames} if cfg.phi1_train.mask_background else None
             feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
                                             image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
-                                            fg_crop_margin=cfg.phi1_train.crop_margin)
-            recons.append(load_recon(cache.path("recon", v.video_id)))
+                                            fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write("all", "scenes", key) as tmp:
             labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
@@ -267,7 +281,8 @@ class Ours(EmbeddingMethodBase):
         cache = self.run_overseg(train_videos)
         pseudo = self.pseudo_labels(train_videos, cache, self.train_phi1(train_videos, cache))
         folders = {v.video_id: pseudo / PSEUDO_MAPS_DIR.format(video_id=v.video_id) for v in train_videos}
-        source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)])
+        source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)],
+                                  foreground=_fg_loader(cache))
         return source, {"pseudo": read_json(pseudo / STAGE_FILE)["key_hash"]}
 
     def segment_3d(self, videos: list[Video], rows: tuple[str, ...] = ROWS_3D) -> Segmentations3D:

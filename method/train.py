@@ -36,7 +36,7 @@ from selfseg.dataset import Video
 from selfseg.fileio import atomic_write_bytes, hash_json, write_json
 from selfseg.method.contrastive import NEGATIVES, prototype_contrastive_loss
 from selfseg.method.features import foreground_box
-from selfseg.method.network import EmbeddingNet, NetConfig
+from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
 
 # Files of a training run, relative to its out_dir.
 WEIGHTS = "weights.pt"  # the final network (torch dict with the settings' key_hash); a finished run is not retrained
@@ -86,16 +86,23 @@ class TrainConfig:
     contrast: float = 0.3
     saturation: float = 0.3
     hue: float = 0.05  # hue shift, fraction of the full hue circle, drawn in [−x, x]
+    rotation_deg: float = 0.0  # random in-plane rotation about the crop's centre, drawn in [−x, x] degrees
     min_segment_px: int = 16  # segments with fewer pixels in a crop are ignored
     # Foreground crop: each frame is first cropped to the bounding box of its labelled pixels grown by
     # fg_crop_margin × its longer side, so image_size sets the scale of the objects, not of the room
     # around them. Inference crops to the given foreground mask the same way (features.embed_frames).
     fg_crop: bool = False
     fg_crop_margin: float = 0.1
+    # Background masked out of the input: every pixel outside the foreground (the label source's
+    # foreground mask, else its labelled pixels) and the padding is set to the network's input mean
+    # (network.RGB_MEAN) after colour jitter, and labels outside the foreground are ignored. The foreground
+    # then also sets the crop box. Inference masks the same way with the mask it is given (embed_frames).
+    mask_background: bool = False
     # Scope of the contrastive negatives (method.contrastive): "image" is the paper's (the segments of the
     # pixel's own frame). "batch" pushes the same object in two frames of a batch apart; measured: it
     # collapsed supervised embeddings at 2000 steps on tiny and gave φ1 lower same-object cosine across
-    # scenes (median .51 vs .72); README "Choices where the paper is silent".
+    # scenes (median .51 vs .72); README "Choices where the paper is silent". "global": label ids name the same
+    # object in every frame (one prototype per object over the batch); only for label sources with global ids.
     negatives: str = "image"
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
@@ -116,6 +123,8 @@ class TrainConfig:
             raise ValueError(f"negatives must be one of {NEGATIVES}, got {self.negatives!r}")
         if self.fg_crop_margin < 0:
             raise ValueError(f"fg_crop_margin must be ≥ 0, got {self.fg_crop_margin}")
+        if not 0 <= self.rotation_deg <= 180:
+            raise ValueError(f"rotation_deg must be in [0, 180], got {self.rotation_deg}")
 
     @property
     def crop_margin(self) -> float | None:
@@ -139,7 +148,11 @@ TRAIN_PRESETS: dict[str, dict] = {
 
 
 class LabelSource(Protocol):
-    """Training pairs: ``source[i]`` → (rgb uint8 H×W×3, labels int32 H×W, −1 = ignore, ≥ 0 = segment id)."""
+    """Training pairs: ``source[i]`` → (rgb uint8 H×W×3, labels int32 H×W, −1 = ignore, ≥ 0 = segment id).
+
+    Optional attributes the trainer reads: ``foreground(i)`` → bool H×W foreground mask of pair i or None
+    (``TrainConfig.mask_background``; without it, the labelled pixels), and ``global_ids``: True when an id
+    names the same object in every frame (required by ``negatives: global``)."""
 
     def __len__(self) -> int: ...
 
@@ -147,6 +160,7 @@ class LabelSource(Protocol):
 
 
 LabelLoader = Callable[[Video, int], np.ndarray]
+MaskLoader = Callable[[Video, int], np.ndarray]
 
 
 class FrameLabelSource:
@@ -154,12 +168,18 @@ class FrameLabelSource:
 
     items: (video, frame_id, loader) triples; ``loader(video, frame_id)`` returns the frame's int
     label map (−1 = ignore, ≥ 0 = segment id), e.g. projected 3D segments or pseudo-labels.
+    ``foreground``: optional loader of the frame's bool foreground mask (the method's own, for
+    ``TrainConfig.mask_background``). ``global_ids``: the loaders' ids name the same object in every
+    video (object identities), not segments of one scene.
     """
 
-    def __init__(self, items: Sequence[tuple[Video, int, LabelLoader]]):
+    def __init__(self, items: Sequence[tuple[Video, int, LabelLoader]], foreground: MaskLoader | None = None,
+                 global_ids: bool = False):
         self.items = list(items)
         if not self.items:
             raise ValueError("a label source needs at least one frame")
+        self._foreground = foreground
+        self.global_ids = global_ids
 
     def __len__(self) -> int:
         return len(self.items)
@@ -172,6 +192,17 @@ class FrameLabelSource:
             raise ValueError(f"video {video.video_id} frame {fid}: label map must be an integer "
                              f"{rgb.shape[0]}×{rgb.shape[1]} array, got {labels.dtype} {labels.shape}")
         return rgb, labels.astype(np.int32)
+
+    def foreground(self, i: int) -> np.ndarray | None:
+        """bool H×W foreground mask of pair ``i`` from the ``foreground`` loader; None without one."""
+        if self._foreground is None:
+            return None
+        video, fid, _ = self.items[i]
+        fg = np.asarray(self._foreground(video, fid))
+        if fg.shape != (video.height, video.width):
+            raise ValueError(f"video {video.video_id} frame {fid}: foreground mask must be "
+                             f"{video.height}×{video.width}, got {fg.shape}")
+        return fg.astype(bool)
 
 
 def begin_training(sched: TrainConfig | OptimSchedule) -> torch.device:
@@ -212,35 +243,62 @@ def _jitter(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.n
     return np.clip(img, 0, 1)
 
 
-def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.random.Generator
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """Resize, random scale, crop, flip and colour jitter.
+def _rotate(img: np.ndarray, lab: np.ndarray, fg: np.ndarray, deg: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotate image (linear, black outside), labels (nearest, −1 outside) and foreground (nearest, False
+    outside) by ``deg`` degrees about the image centre, keeping the size."""
+    h, w = lab.shape
+    M = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), deg, 1.0)
+    img = cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    lab = cv2.warpAffine(lab, M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=-1)
+    fg = cv2.warpAffine(fg.astype(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=0) > 0
+    return img, lab, fg
+
+
+def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.random.Generator,
+            fg: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Resize, random scale, rotation, crop, flip and colour jitter; with ``cfg.mask_background``, the
+    background (outside ``fg``, bool H×W, or outside the labelled pixels if None) and padding set to
+    RGB_MEAN and its labels ignored.
 
     rgb uint8 H×W×3, labels int H×W → (float32 3×h×w in [0, 1], int64 h×w with −1 = ignore), h×w = cfg.crop.
+    Padding (a scaled frame smaller than the crop) and pixels rotated in from outside get label −1.
     """
     img = rgb.astype(np.float32) / 255.0
     lab = labels.astype(np.int32)
-    box = foreground_box(lab >= 0, cfg.fg_crop_margin) if cfg.fg_crop else None
+    fgm = (lab >= 0 if fg is None else np.asarray(fg, bool)) if cfg.mask_background else lab >= 0
+    box = foreground_box(fgm, cfg.fg_crop_margin) if cfg.fg_crop else None
     if box is not None:
         y0, y1, x0, x1 = box
-        img, lab = img[y0:y1, x0:x1], lab[y0:y1, x0:x1]
+        img, lab, fgm = img[y0:y1, x0:x1], lab[y0:y1, x0:x1], fgm[y0:y1, x0:x1]
+    if cfg.mask_background:  # before resizing too, so that no background blends into the object's edge
+        img[~fgm] = np.asarray(RGB_MEAN, np.float32)
     h, w = lab.shape
     base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
     s = base * rng.uniform(*cfg.scale_range)
     nh, nw = max(1, round(h * s)), max(1, round(w * s))
     img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)  # antialiased
     lab = cv2.resize(lab, (nw, nh), interpolation=cv2.INTER_NEAREST)
+    fgm = cv2.resize(fgm.astype(np.uint8), (nw, nh), interpolation=cv2.INTER_NEAREST) > 0
+    if cfg.mask_background:
+        lab[~fgm] = -1
+    if cfg.rotation_deg > 0:
+        img, lab, fgm = _rotate(img, lab, fgm, rng.uniform(-cfg.rotation_deg, cfg.rotation_deg))
     ch, cw = cfg.crop
     ph, pw = max(0, ch - nh), max(0, cw - nw)
     if ph or pw:
         img = np.pad(img, ((0, ph), (0, pw), (0, 0)))
         lab = np.pad(lab, ((0, ph), (0, pw)), constant_values=-1)
+        fgm = np.pad(fgm, ((0, ph), (0, pw)))
     y0 = int(rng.integers(0, img.shape[0] - ch + 1))
     x0 = int(rng.integers(0, img.shape[1] - cw + 1))
-    img, lab = img[y0:y0 + ch, x0:x0 + cw], lab[y0:y0 + ch, x0:x0 + cw]
+    img, lab, fgm = img[y0:y0 + ch, x0:x0 + cw], lab[y0:y0 + ch, x0:x0 + cw], fgm[y0:y0 + ch, x0:x0 + cw]
     if cfg.flip and rng.random() < 0.5:
-        img, lab = img[:, ::-1], lab[:, ::-1]
+        img, lab, fgm = img[:, ::-1], lab[:, ::-1], fgm[:, ::-1]
     img = _jitter(np.ascontiguousarray(img), cfg, rng)
+    if cfg.mask_background:
+        img[~fgm] = np.asarray(RGB_MEAN, np.float32)
     lab = lab.astype(np.int64)
     ids, counts = np.unique(lab[lab >= 0], return_counts=True)
     small = ids[counts < cfg.min_segment_px]
@@ -253,7 +311,8 @@ def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.
     """The batch of ``step``: a pure function of (seed, step) → (B×3×h×w float, B×h×w long)."""
     rng = np.random.default_rng([cfg.seed, step])
     idx = rng.choice(len(source), cfg.batch_size, replace=len(source) < cfg.batch_size)
-    pairs = [augment(*source[int(i)], cfg, rng) for i in idx]
+    foreground = getattr(source, "foreground", None) if cfg.mask_background else None
+    pairs = [augment(*source[int(i)], cfg, rng, None if foreground is None else foreground(int(i))) for i in idx]
     return (torch.from_numpy(np.stack([p[0] for p in pairs])), torch.from_numpy(np.stack([p[1] for p in pairs])))
 
 
@@ -338,6 +397,9 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
         raise ValueError(f"{weights}: trained with other settings; use another out_dir or delete it")
     if len(source) == 0:
         raise ValueError("the label source is empty")
+    if cfg.negatives == "global" and not getattr(source, "global_ids", False):
+        raise ValueError("negatives 'global' needs a label source whose ids name the same object in every frame "
+                         "(global_ids); this one numbers segments per scene: use 'image'")
     device = begin_training(cfg)
     net = EmbeddingNet(net_cfg).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)

@@ -6,19 +6,24 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from selfseg.method.contrastive import prototype_contrastive_loss
+from selfseg.method.contrastive import prototype_contrastive_loss, segment_prototypes
 
 torch.set_num_threads(2)
 
 
 def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: str = "batch") -> float:
     """Direct implementation: every pixel against every (image, segment) prototype of the batch
-    ("batch") or of its own image ("image")."""
+    ("batch") or of its own image ("image"), or against one prototype per id over the batch ("global")."""
     protos = []
-    for b in range(emb.shape[0]):
-        for s in sorted(set(labels[b].flatten().tolist()) - {-1}):
-            m = emb[b][:, labels[b] == s].mean(1)
-            protos.append(((b, s), m / m.norm()))
+    if negatives == "global":
+        for s in sorted(set(labels.flatten().tolist()) - {-1}):
+            m = emb.permute(1, 0, 2, 3)[:, labels == s].mean(1)
+            protos.append(((None, s), m / m.norm()))
+    else:
+        for b in range(emb.shape[0]):
+            for s in sorted(set(labels[b].flatten().tolist()) - {-1}):
+                m = emb[b][:, labels[b] == s].mean(1)
+                protos.append(((b, s), m / m.norm()))
     total, count = 0.0, 0
     for b in range(emb.shape[0]):
         for y in range(emb.shape[2]):
@@ -27,9 +32,9 @@ def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: st
                 if s < 0:
                     continue
                 z = emb[b, :, y, x]
-                logits = {k: float(z @ p) / tau for k, p in protos if negatives == "batch" or k[0] == b}
+                logits = {k: float(z @ p) / tau for k, p in protos if negatives != "image" or k[0] == b}
                 denom = sum(math.exp(v) for v in logits.values())
-                total += -(logits[(b, s)] - math.log(denom))
+                total += -(logits[(None if negatives == "global" else b, s)] - math.log(denom))
                 count += 1
     return total / count
 
@@ -42,7 +47,7 @@ def test_loss_matches_direct_loop():
     labels[2] = -1
     labels[2, 0, :3] = 5  # an image with a single segment
     for tau in (0.07, 0.5):
-        for negatives in ("batch", "image"):
+        for negatives in ("batch", "image", "global"):
             got = prototype_contrastive_loss(emb, labels, tau, negatives=negatives).item()
             assert got == pytest.approx(loop_loss(emb, labels, tau, negatives), rel=1e-9)
     # the scopes differ: per-image negatives leave out the other images' segments
@@ -60,6 +65,46 @@ def test_image_negatives_do_not_push_the_same_object_in_two_images_apart():
     two, labs = one.repeat(2, 1, 1, 1), lab.repeat(2, 1, 1)
     assert prototype_contrastive_loss(two, labs, negatives="image").item() == pytest.approx(alone, rel=1e-12)
     assert prototype_contrastive_loss(two, labs, negatives="batch").item() > alone + 0.5
+
+
+def test_global_ids_give_one_prototype_per_object_over_the_batch():
+    """Object 0 in two images with different embeddings: per image two prototypes, globally one, the
+    normalised mean of all its pixels in both images."""
+    emb = torch.zeros(2, 2, 1, 3, dtype=torch.float64)
+    emb[0, :, 0, :2] = torch.tensor([1.0, 0.0]).view(2, 1)  # image 0: object 0 on two pixels along x
+    emb[1, :, 0, :1] = torch.tensor([0.0, 1.0]).view(2, 1)  # image 1: object 0 on one pixel along y
+    emb[:, :, 0, 2] = torch.tensor([-1.0, 0.0])  # object 1, last pixel of both images
+    labels = torch.tensor([[[0, 0, 1]], [[0, 1, 1]]])
+    labels[1, 0, 1] = -1
+    _, target, protos, _, proto_image = segment_prototypes(emb, labels)
+    assert len(protos) == 4 and proto_image.tolist() == [0, 0, 1, 1]
+    _, target, protos, _, proto_image = segment_prototypes(emb, labels, per_image=False)
+    assert len(protos) == 2 and target.tolist() == [0, 0, 1, 0, 1] and proto_image.tolist() == [-1, -1]
+    assert torch.allclose(protos[0], torch.tensor([2.0, 1.0], dtype=torch.float64) / math.sqrt(5))
+    assert torch.allclose(protos[1], torch.tensor([-1.0, 0.0], dtype=torch.float64))
+
+
+def test_global_negatives_pull_the_same_object_together_across_images():
+    """Two images of objects 0 and 1 (flat, orthogonal unit embeddings e0, e1). When object 0 looks the same
+    in both, the global loss is that of one image alone: its two copies share a prototype (image negatives
+    would not link them, batch negatives would push them apart). When it looks e2 ⊥ e0 in image 1, its
+    prototype is (e0 + e2)/√2 and its pixels score 1/√2 against it: known answers at τ = 0.5."""
+    e = torch.eye(3, dtype=torch.float64)
+    one = torch.zeros(1, 3, 2, 4, dtype=torch.float64)
+    one[0, :, :, :2], one[0, :, :, 2:] = e[0].view(3, 1, 1), e[1].view(3, 1, 1)
+    lab = torch.zeros(1, 2, 4, dtype=torch.long)
+    lab[0, :, 2:] = 1
+    nll = lambda own, other: math.log(1 + math.exp((other - own) / 0.5))  # noqa: E731  two prototypes
+    alone = prototype_contrastive_loss(one, lab, tau=0.5, negatives="image").item()
+    assert alone == pytest.approx(nll(1, 0), rel=1e-12)
+    two, labs = one.repeat(2, 1, 1, 1), lab.repeat(2, 1, 1)
+    assert prototype_contrastive_loss(two, labs, tau=0.5, negatives="global").item() == pytest.approx(alone, rel=1e-12)
+    assert prototype_contrastive_loss(two, labs, tau=0.5, negatives="batch").item() > alone + 0.5
+    apart = two.clone()
+    apart[1, :, :, :2] = e[2].view(3, 1, 1)
+    want = (nll(1 / math.sqrt(2), 0) + nll(1, 0)) / 2  # half the pixels are object 0's
+    assert prototype_contrastive_loss(apart, labs, tau=0.5, negatives="global").item() == pytest.approx(want, rel=1e-12)
+    assert prototype_contrastive_loss(apart, labs, tau=0.5, negatives="image").item() == pytest.approx(alone, rel=1e-12)
 
 
 def test_unknown_negatives_scope_is_refused():

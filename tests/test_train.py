@@ -9,10 +9,11 @@ from scipy.optimize import linear_sum_assignment
 from analytic import make_dataset, two_box_scenes
 from selfseg.dataset import Dataset, DatasetError, ground_truth_forbidden
 from selfseg.method.embed_method import EmbeddingMethodConfig
-from selfseg.method.features import embed_frames, foreground_box, segment_features
+from selfseg.method.features import embed_frames, foreground_box, mask_input, segment_features
 from selfseg.method.meanshift import MeanShiftConfig
-from selfseg.method.network import EmbeddingNet, NetConfig
-from selfseg.method.train import FrameLabelSource, TrainConfig, augment, load_embedding_net, train_embedding
+from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
+from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, load_embedding_net, make_batch,
+                                  train_embedding)
 from selfseg.registry import get_method_class
 
 torch.set_num_threads(2)
@@ -113,6 +114,138 @@ def test_augment_jitter_changes_colour_only_and_drops_small_segments():
     img, out = augment(rgb, lab, cfg, np.random.default_rng(0))
     assert np.all(out[:2, :2] == -1) and np.all(out[2:] == 0)
     assert abs(float(img.mean()) - 128 / 255) > 1e-3 and 0 <= img.min() and img.max() <= 1
+
+
+def _plain(**kw) -> TrainConfig:
+    """Augmentation that only crops (scale 1, no flip, no jitter) unless ``kw`` says otherwise."""
+    base = dict(image_size=0, crop=(48, 64), scale_range=(1, 1), flip=False, brightness=0, contrast=0, saturation=0,
+                hue=0, min_segment_px=1)
+    return TrainConfig(**{**base, **kw})
+
+
+def _two_objects():
+    """48×64 random texture (the 'table') with objects 0 and 1; the given foreground covers object 0, the left
+    half of object 1 and an unlabelled patch."""
+    rgb = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    lab = np.full((48, 64), -1, np.int32)
+    lab[5:20, 5:25], lab[25:40, 30:60] = 0, 1
+    fg = np.zeros((48, 64), bool)
+    fg[5:20, 5:25], fg[25:40, 30:45], fg[0:4, 50:60] = True, True, True
+    return rgb, lab, fg
+
+
+def test_mask_background_sets_exactly_the_background_pixels():
+    rgb, lab, fg = _two_objects()
+    mean = np.asarray(RGB_MEAN, np.float32)[:, None]
+    img, out = augment(rgb, lab, _plain(mask_background=True), np.random.default_rng(0), fg)
+    assert np.array_equal(img[:, ~fg], np.repeat(mean, (~fg).sum(), 1))  # every background pixel: the mean
+    assert np.allclose(img[:, fg], (rgb[fg].astype(np.float32) / 255.0).T, atol=1e-6)  # the foreground untouched
+    assert np.array_equal(out, np.where(fg, lab, -1))  # labels outside the given foreground are ignored
+    # without a foreground mask the labelled pixels are the foreground
+    img, out = augment(rgb, lab, _plain(mask_background=True), np.random.default_rng(0))
+    assert np.array_equal(img[:, lab < 0], np.repeat(mean, (lab < 0).sum(), 1)) and np.array_equal(out, lab)
+    # colour jitter changes the foreground, never the mask value
+    img, _ = augment(rgb, lab, _plain(mask_background=True, brightness=0.4, hue=0.1), np.random.default_rng(0), fg)
+    assert np.array_equal(img[:, ~fg], np.repeat(mean, (~fg).sum(), 1))
+    assert not np.allclose(img[:, fg], (rgb[fg].astype(np.float32) / 255.0).T, atol=0.01)
+    # off: the table stays in the input
+    img, _ = augment(rgb, lab, _plain(), np.random.default_rng(0), fg)
+    assert np.allclose(img, rgb.astype(np.float32).transpose(2, 0, 1) / 255.0, atol=1e-6)
+
+
+def test_mask_background_crops_to_the_given_foreground():
+    """The crop box is the given foreground's: its unlabelled red patch (rows 0–3) is in the training image
+    and not masked; with the labelled pixels as foreground (no mask given) it is cut off."""
+    rgb, lab, fg = _two_objects()
+    rgb[0:4, 50:60] = (255, 0, 0)
+    cfg = _plain(mask_background=True, fg_crop=True, fg_crop_margin=0.0, image_size=64, crop=(48, 64))
+    red = lambda img: (img[0] > 0.9) & (img[1] < 0.1) & (img[2] < 0.1)  # noqa: E731
+    img, out = augment(rgb, lab, cfg, np.random.default_rng(0), fg)  # box 40 × 55 px → 47 × 64
+    assert img.shape == (3, 48, 64) and (out == 1).any() and (out == 0).any()
+    assert red(img).sum() >= 30 and (out[red(img)] == -1).mean() > 0.9  # the patch: seen, unlabelled
+    img, _ = augment(rgb, lab, cfg, np.random.default_rng(0))
+    assert red(img).sum() < 3
+
+
+def test_padding_gets_the_ignore_label_and_with_masking_the_mask_value():
+    """A frame scaled to 24×32 inside a 40×48 crop: the padding is ignored; black without masking (as
+    before), the mask value with it, so the network cannot tell padding from background."""
+    rgb, lab, fg = _two_objects()
+    lab[:] = 0  # everything labelled: only the padding can be ignored
+    mean = np.asarray(RGB_MEAN, np.float32)
+    for mask in (False, True):
+        img, out = augment(rgb, lab, _plain(image_size=32, crop=(40, 48), mask_background=mask),
+                           np.random.default_rng(0), np.ones((48, 64), bool))
+        assert np.all(out[24:] == -1) and np.all(out[:, 32:] == -1) and np.all(out[:24, :32] == 0)
+        pad = img[:, 24:, :].reshape(3, -1).T
+        assert np.all(pad == (mean if mask else 0))
+        assert np.all(img[:, :, 32:].reshape(3, -1).T == (mean if mask else 0))
+
+
+def test_rotation_keeps_labels_on_their_pixels_and_ignores_what_rotates_in():
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    lab = np.zeros((48, 64), np.int32)
+    for k, (y, x) in enumerate([(0, 0), (0, 32), (24, 0), (24, 32)]):
+        rgb[y:y + 24, x:x + 32] = (60 * k + 20, 10, 250 - 60 * k)
+        lab[y:y + 24, x:x + 32] = k
+    cfg = _plain(rotation_deg=40)
+    turned = 0
+    for step in range(6):
+        img, out = augment(rgb, lab, cfg, np.random.default_rng(step))
+        assert (out[0, 0] == -1) == (out[-1, -1] == -1)  # corners come in from outside (or none do at ~0°)
+        turned += int(out[0, 0] == -1)
+        for k in np.unique(out[out >= 0]):
+            interior = np.abs(img[0][out == k] - (60 * k + 20) / 255) < 0.02
+            assert interior.mean() > 0.8  # label k sits on colour k (edges blur by interpolation)
+    assert turned >= 4 and not np.array_equal(out, lab)
+
+
+def test_masked_embedding_does_not_see_the_background():
+    """With the foreground mask, frames that differ only outside it embed identically (whole frame, at
+    another scale, and inside a foreground box); without it they do not."""
+    torch.manual_seed(0)
+    net = EmbeddingNet(NetConfig(width=8, aspp_channels=8, low_level_channels=8, decoder_channels=8)).eval()
+    rgb, _, fg = _two_objects()
+    other = np.random.default_rng(7).integers(0, 256, rgb.shape, dtype=np.uint8)
+    other[fg] = rgb[fg]
+    box = foreground_box(fg, 0.1)
+    for size, boxes in ((0, None), (96, None), (96, [box])):
+        a = embed_frames(net, [rgb], "cpu", size, boxes, [fg])
+        b = embed_frames(net, [other], "cpu", size, boxes, [fg])
+        assert torch.equal(a, b)
+        assert not torch.allclose(embed_frames(net, [rgb], "cpu", size, boxes), embed_frames(net, [other], "cpu",
+                                                                                             size, boxes))
+    x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
+    want = torch.where(torch.from_numpy(fg), x, torch.tensor(RGB_MEAN).view(1, 3, 1, 1))
+    assert torch.equal(mask_input(x, [fg]), want)
+
+
+def test_make_batch_masks_with_the_sources_foreground(analytic_dataset):
+    """FrameLabelSource's foreground loader is what mask_background masks with (not its labels)."""
+    video = Dataset(analytic_dataset).labeled("000000")
+    fid = video.frame_ids[0]
+    half = np.zeros((video.height, video.width), bool)
+    half[:, :video.width // 2] = True
+    labels = lambda v, f: v.inst(f).astype(np.int32) - 1  # noqa: E731
+    src = FrameLabelSource([(video, fid, labels)], foreground=lambda v, f: half & (v.inst(f) > 0))
+    fg = src.foreground(0)
+    assert 0 < fg.sum() < (src[0][1] >= 0).sum()
+    cfg = _plain(mask_background=True, crop=(video.height, video.width), batch_size=2)
+    rgb, lab = make_batch(src, cfg, step=0)
+    for i in range(2):
+        assert np.array_equal(lab[i].numpy(), np.where(fg, src[0][1], -1))
+        assert torch.all(rgb[i][:, torch.from_numpy(~fg)] == torch.tensor(RGB_MEAN).view(3, 1))
+    rgb, lab = make_batch(src, _plain(crop=(video.height, video.width), batch_size=1), step=0)  # off: not read
+    assert np.array_equal(lab[0].numpy(), src[0][1])
+    bad = FrameLabelSource([(video, fid, labels)], foreground=lambda v, f: np.ones((3, 3), bool))
+    with pytest.raises(ValueError, match="foreground mask"):
+        bad.foreground(0)
+    assert FrameLabelSource([(video, fid, labels)]).foreground(0) is None
+
+
+def test_global_negatives_need_a_source_with_global_ids(tmp_path):
+    with pytest.raises(ValueError, match="global"):
+        train_embedding(SyntheticSource(), tiny_cfg(negatives="global"), SMALL_NET, tmp_path, progress=False)
 
 
 def test_resumed_training_equals_unbroken_run(tmp_path):
@@ -274,3 +407,33 @@ def test_label_source_checks_label_maps(analytic_dataset):
         src[0]
     with pytest.raises(ValueError, match="at least one"):
         FrameLabelSource([])
+
+
+@pytest.mark.slow
+def test_ours_masks_with_its_own_reconstructed_foreground(tmp_path):
+    """`ours` with mask_background: φ1, its segment features and φ2 train on the recon stage's projected
+    foreground masks (never ground truth, all under the guard); the masks are the stage's files."""
+    from selfseg.config import load_config
+    from selfseg.method.pipeline import Ours, OursConfig
+    from selfseg.method.recon_stage import load_recon
+
+    root = make_dataset(tmp_path / "dense", two_box_scenes()[:2], n_frames=20, width=160, height=120, arc_deg=30)
+    ds = Dataset(root)
+    fast = ["net.width=8", "net.aspp_channels=16", "net.decoder_channels=16", "net.low_level_channels=8",
+            "pseudo.match.workers=1", "frame_stride=4", "feature_stride=4"]
+    for phase in ("train", "phi1_train"):
+        fast += [f"{phase}.steps=4", f"{phase}.batch_size=2", f"{phase}.crop=[64, 96]", f"{phase}.image_size=160",
+                 f"{phase}.fg_crop=true", f"{phase}.mask_background=true"]
+    method = Ours(load_config(OursConfig, overrides=fast), tmp_path / "work")
+    train = [ds.video(v) for v in ds.video_ids]
+    with ground_truth_forbidden(root):
+        source, _ = method.label_source(train)
+        cache = method.stage_cache(train)
+        for i in range(0, len(source), 3):
+            video, fid, _ = source.items[i]
+            assert np.array_equal(source.foreground(i), load_recon(cache.path("recon", video.video_id)).fg_mask(fid))
+        method.fit(train)
+    fg_est = source.foreground(0)
+    video, fid, _ = source.items[0]
+    gt_fg = ds.labeled(video.video_id).inst(fid) > 0
+    assert (fg_est & gt_fg).sum() > 0.8 * gt_fg.sum() and not np.array_equal(fg_est, gt_fg)  # close, not GT

@@ -1,0 +1,120 @@
+"""Diagnostic, not a test: the supervised bound (or another learned method) under named config variants.
+
+    .venv/bin/python bench/bench_supervised_levers.py --data DIR --config configs/supervised-calibrated.yaml
+        --variant NAME:key=value,key=value ... [--method supervised] [--folds 0] [--set KEY=VALUE ...]
+        [--out runs/levers] [--json bench/results/supervised_levers.json]
+
+Each variant runs ``evaluate --method METHOD --data DIR --config CONFIG --set ... --folds FOLDS --name
+METHOD@NAME --out OUT`` (the real CLI and protocol, in its own process), one variant after the other, then
+reads the fold records back: IoU per fold, their mean, and the wall time of the call. ``--set`` applies to
+every variant, the variant's own ``key=value`` pairs after it (``NAME`` alone: the config as it is; a value
+holding a comma is written in brackets, ``train.crop=[160,192]``). Run it on a development dataset, never on
+the seed-0 test folds. ``evaluate`` resumes finished folds and the trained networks are cached under
+OUT/work, so a re-run only scores what is missing. The JSON keeps the rows of earlier calls (keyed by
+dataset, method, variant and folds) and replaces those run again.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from selfseg.dataset import Dataset
+from selfseg.eval.protocol import SCORES_JSON, results_key
+from selfseg.fileio import read_json, write_json
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """"NAME:a=1,b.c=[2,3]" → ("NAME", ["a=1", "b.c=[2,3]"]): commas inside brackets stay in their value."""
+    name, _, rest = text.partition(":")
+    if not name or any(c in name for c in "/@ "):
+        raise ValueError(f"variant {text!r}: needs a NAME (no '/', '@' or space) before ':'")
+    items, depth, cur = [], 0, ""
+    for c in rest:
+        depth += (c in "[{") - (c in "]}")
+        if c == "," and depth == 0:
+            items.append(cur)
+            cur = ""
+        else:
+            cur += c
+    items.append(cur)
+    sets = [s.strip() for s in items if s.strip()]
+    bad = [s for s in sets if "=" not in s]
+    if bad:
+        raise ValueError(f"variant {text!r}: {bad} are not key=value")
+    return name, sets
+
+
+def run_variant(args, name: str, sets: list[str], folds: list[int]) -> dict:
+    """Run ``evaluate`` for one variant and read its fold records back."""
+    run_name = f"{args.method}@{name}"
+    cmd = [sys.executable, "-m", "selfseg.eval.cli", "--method", args.method, "--data", args.data, "--folds",
+           ",".join(map(str, folds)), "--name", run_name, "--out", args.out, "--quiet"]
+    if args.config:
+        cmd += ["--config", args.config]
+    for s in [*args.overrides, *sets]:
+        cmd += ["--set", s]
+    print(f"[{name}] {' '.join(cmd[2:])}", flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.call(cmd)
+    wall_s = time.perf_counter() - t0
+    if rc != 0:
+        raise SystemExit(f"bench_supervised_levers: variant {name}: evaluate exited with {rc}")
+    ds = Dataset(args.data)
+    key = results_key(Path(args.out), ds)
+    recs = [read_json(Path(args.out) / SCORES_JSON.format(dataset=key, name=run_name, fold=k)) for k in folds]
+    iou = [r["metrics"]["IoU"] for r in recs]
+    return {"variant": name, "method": args.method, "data": str(Path(args.data).resolve()),
+            "dataset_hash": ds.content_hash(), "config": args.config, "sets": [*args.overrides, *sets],
+            "folds": folds, "iou_per_fold": iou, "iou_mean": sum(iou) / len(iou),
+            "precision_mean": sum(r["metrics"]["P"] for r in recs) / len(recs),
+            "recall_mean": sum(r["metrics"]["R"] for r in recs) / len(recs),
+            "fit_s_per_fold": [r["timings"]["fit_s"] for r in recs], "wall_s": round(wall_s, 1),
+            "commit": recs[0]["git"]["commit"]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="development dataset folder (never the seed-0 test folds)")
+    p.add_argument("--method", default="supervised")
+    p.add_argument("--config", default="", help="the method's YAML config (the variants' starting point)")
+    p.add_argument("--variant", action="append", required=True, metavar="NAME:KEY=VALUE,...")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override for every variant (e.g. train.threads=1)")
+    p.add_argument("--folds", default="0,1,2")
+    p.add_argument("--out", default="runs/levers", help="evaluate's results folder")
+    p.add_argument("--json", default="bench/results/supervised_levers.json")
+    args = p.parse_args(argv)
+    try:
+        variants = [parse_variant(v) for v in args.variant]
+        folds = [int(k) for k in args.folds.split(",")]
+    except ValueError as e:
+        print(f"bench_supervised_levers: {e}", file=sys.stderr)
+        return 2
+    if not (Path(args.data) / "dataset_info.json").is_file():
+        print(f"bench_supervised_levers: {args.data}: not a dataset (no dataset_info.json)", file=sys.stderr)
+        return 2
+    rows = [run_variant(args, name, sets, folds) for name, sets in variants]
+    path = Path(args.json)
+    old = json.loads(path.read_text())["rows"] if path.is_file() else []
+    ident = lambda r: (r["dataset_hash"], r["method"], r["variant"], tuple(r["folds"]))  # noqa: E731
+    new_ids = {ident(r) for r in rows}
+    allrows = [r for r in old if ident(r) not in new_ids] + rows
+    write_json(path, {"what": "IoU of named config variants through evaluate (bench/bench_supervised_levers.py)",
+                      "rows": allrows})
+    print(f"{'variant':<24} {'method':<12} {'folds':<6} {'IoU per fold':<22} {'mean':>5} {'P':>5} {'R':>5} "
+          f"{'wall s':>7}  sets")
+    for r in rows:
+        per = " / ".join(f"{x:.3f}" for x in r["iou_per_fold"])
+        print(f"{r['variant']:<24} {r['method']:<12} {','.join(map(str, r['folds'])):<6} {per:<22} "
+              f"{r['iou_mean']:.3f} {r['precision_mean']:.3f} {r['recall_mean']:.3f} {r['wall_s']:>7.0f}  "
+              f"{' '.join(r['sets'])}")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
