@@ -23,8 +23,9 @@ $(STAMP): pyproject.toml scripts/install_system_deps.sh
 demo: $(STAMP)
 	bash scripts/demo.sh $(DEMO)
 
+# The suite runs as on a fresh machine: an empty HOME (no caches, no matplotlib font cache), MPLCONFIGDIR unset.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	home=$$(mktemp -d) && trap 'rm -rf "$$home"' EXIT && env -u MPLCONFIGDIR HOME="$$home" $(PY) -m pytest -q
 
 clean:
 	rm -rf $(VENV) runs

@@ -19,10 +19,11 @@ import time
 from pathlib import Path
 
 from selfseg.config import load_config
-from selfseg.dataset import Dataset, ground_truth_forbidden
+from selfseg.dataset import Dataset
 from selfseg.eval.aggregate import SegmentationEvaluator
 from selfseg.eval.protocol import EvalOptions, select_test_frames
 from selfseg.fileio import write_json
+from selfseg.guard import ground_truth_forbidden
 from selfseg.registry import get_method_class
 
 FRAME_STRIDE = EvalOptions.frame_stride  # evaluate's default protocol

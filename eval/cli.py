@@ -2,9 +2,11 @@
 
     evaluate --method NAME|package.module:ClassName --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
              [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
+             [--method-needs-ground-truth] [--trust-method]
              [--out results/] [--list-methods] [--executor local|ray] [--ray-address auto|HOST:PORT]
 
-Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table.
+Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table. The method's code
+runs only in its own sandboxed process (:mod:`selfseg.eval.sandbox`), never in this one.
 Errors in the inputs (unknown method, missing dataset, bad config or predictions) print one
 message naming the file or option and exit with status 2.
 """
@@ -17,14 +19,15 @@ import os
 import sys
 from pathlib import Path
 
-from selfseg.config import ConfigError, load_config
-from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, ground_truth_attempts,
-                             ground_truth_forbidden)
+from selfseg.config import ConfigError
+from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
+from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
 from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, check_shared_folder, \
     executor_config, make_executor
 from selfseg.fileio import FileFormatError
+from selfseg.guard import GroundTruthAccessError
 from selfseg.registry import UnknownMethodError, get_method_class, method_names
 
 TABLE_KEYS = ("P", "R", "IoU", "overlap_F", "boundary_F", "F75")
@@ -53,6 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "(<video_id>/<frame_id:06d>.png)")
     p.add_argument("--name", help="name of this run in results and leaderboards (default: the method name)")
     p.add_argument("--poses-given", action="store_true", help="give methods ground-truth camera poses (ablation)")
+    p.add_argument("--method-needs-ground-truth", action="store_true",
+                   help="give your own method (package.module:ClassName) the fold's training videos' labels, never "
+                   "the test videos'; recorded, and the run is named <name>@train-labels")
+    p.add_argument("--trust-method", action="store_true",
+                   help="where no sandbox can be started (no user namespaces or no bwrap), run your own method anyway, "
+                   "in a plain process that can read anything you can (results marked unsandboxed)")
     p.add_argument("--foreground", choices=("gt", "plane"), default="gt",
                    help="foreground given to methods: gt (the paper's protocol) or plane (estimated from depth by "
                    "removing the support plane; scored on the GT foreground; run name gets '@fg-plane')")
@@ -77,32 +86,35 @@ def format_table(name: str, records: list[dict]) -> str:
     return "\n".join([f"{name} on {records[0]['dataset']['name']}", line(head), *(line(r) for r in rows)])
 
 
-def method_class(spec: str, data: Path):
-    """``--method``: a registered name, or ``package.module:ClassName`` imported from ``PYTHONPATH``. A user's
-    module is imported here with ``data``'s ground truth guarded (any attempt is an error); the method's own
-    process imports it again under the same isolation as the built-in methods."""
-    if ":" not in spec:
-        return get_method_class(spec)
-    before = len(ground_truth_attempts)
-    with ground_truth_forbidden(data):
-        cls = get_method_class(spec)
-    if len(ground_truth_attempts) > before:
-        raise GroundTruthAccessError(f"while importing {spec!r}: {ground_truth_attempts[before]}")
-    return cls
+def method_ref(args: argparse.Namespace, overrides: list[str]) -> tuple[MethodRef, dict]:
+    """The method ``--method`` names and its resolved config, described by its own process (sandboxed where a
+    sandbox can start; else refused for a method of your own unless ``--trust-method``, said in one line)."""
+    user = ":" in args.method
+    if args.method_needs_ground_truth and not user:
+        raise ConfigError(f"--method-needs-ground-truth is for a method of your own; {args.method!r} is registered "
+                          "and its registry entry says which labels it gets")
+    reason = sandbox_unavailable()
+    if reason is not None and user and not args.trust_method:
+        raise SandboxError(f"no sandbox can be started here ({reason}), so a method of your own runs only with "
+                           "--trust-method (it can then read anything you can, ground truth included)")
+    if reason is not None:
+        print(f"evaluate: no sandbox can be started here ({reason}); {args.method} runs unsandboxed, with the "
+              "in-process check only (its results are marked unsandboxed)", file=sys.stderr)
+    return describe_method(args.method, args.config, overrides, reason is None, args.data, args.out)
 
 
-def run_folds_as_tasks(where: ExecutorConfig, cls, config, dataset: Dataset, folds: list[int], out: Path,
-                       options: EvalOptions, quiet: bool) -> dict[int, dict]:
+def run_folds_as_tasks(where: ExecutorConfig, ref: MethodRef, config: dict, dataset: Dataset, folds: list[int],
+                       out: Path, options: EvalOptions, quiet: bool) -> dict[int, dict]:
     """Run ``folds`` as tasks of the executor ``where`` names (e.g. Ray: one task per fold, reserving
     ``ray_cpus_per_task`` CPUs). A task is what :func:`run_fold` does here: the method in its own sandboxed
-    process (which cannot open sockets, so it cannot reach the cluster), then scoring and the result files,
-    written to ``out`` (which every node must see). Returns {fold: record}; Ctrl-C cancels the tasks."""
+    process (no network, so it cannot reach the cluster), then scoring and the result files, written to
+    ``out`` (which every node must see). Returns {fold: record}; Ctrl-C cancels the tasks."""
     ex = make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
                        num_gpus=where.ray_gpus_per_task)
     try:
         out.mkdir(parents=True, exist_ok=True)
         check_shared_folder(ex, out)
-        futures = {ex.submit(run_fold, cls, config, dataset, k, out, options, False): k for k in folds}
+        futures = {ex.submit(run_fold, ref, config, dataset, k, out, options, False): k for k in folds}
         records = {}
         for f in cf.as_completed(futures):
             records[futures[f]] = f.result()
@@ -126,17 +138,18 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.method or not args.data:
         raise ConfigError("--method and --data are required (or use --list-methods)")
-    cls = method_class(args.method, args.data)
     overrides = list(args.overrides)
     if args.predictions is not None:
         if args.method != "external":
             raise ConfigError(f"--predictions is only for --method external, not {args.method!r}")
         overrides.append(f"predictions={args.predictions}")
-    config = load_config(cls.config_cls, args.config, overrides)
+    ref, config = method_ref(args, overrides)
+    suffix = ("@fg-plane" if args.foreground == "plane" else "") + ("@train-labels" if args.method_needs_ground_truth
+                                                                     else "")
     try:
         options = EvalOptions(folds=args.folds, frame_stride=args.frame_stride, limit=args.limit,
-                              name=args.name or (f"{cls.name}@fg-plane" if args.foreground == "plane" else None),
-                              poses_given=args.poses_given, foreground=args.foreground)
+                              name=args.name or (ref.name + suffix if suffix else None), poses_given=args.poses_given,
+                              foreground=args.foreground, method_needs_ground_truth=args.method_needs_ground_truth)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     dataset = Dataset(args.data)
@@ -146,16 +159,16 @@ def run(args: argparse.Namespace) -> int:
     where = executor_config(args, args.config)
     records = {}
     for k in options.folds:  # a fold finished by an earlier run with the same keys is reused (resume)
-        records[k] = finished_fold(cls, config, dataset, k, args.out, options)
+        records[k] = finished_fold(ref, config, dataset, k, args.out, options)
         if records[k] is not None and not args.quiet:
             print(f"fold {k}: reusing the finished result of an identical run", file=sys.stderr)
     todo = [k for k in options.folds if records[k] is None]
     if where.distributed and todo:
-        records.update(run_folds_as_tasks(where, cls, config, dataset, todo, args.out, options, args.quiet))
+        records.update(run_folds_as_tasks(where, ref, config, dataset, todo, args.out, options, args.quiet))
     else:  # plain local runs: one fold after the other, from this process
-        records.update({k: run_fold(cls, config, dataset, k, args.out, options, progress=not args.quiet) for k in todo})
-    print(format_table(options.name or cls.name, [records[k] for k in options.folds]))
-    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or cls.name)}")
+        records.update({k: run_fold(ref, config, dataset, k, args.out, options, progress=not args.quiet) for k in todo})
+    print(format_table(options.name or ref.name, [records[k] for k in options.folds]))
+    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or ref.name)}")
     return 0
 
 
@@ -170,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evaluate: error: method {args.method!r} tried to read ground truth ({args.out / 'rejected'}): {e}",
               file=sys.stderr)
     except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError,
-            ExecutorError) as e:
+            ExecutorError, SandboxError) as e:
         print(f"evaluate: error: {e}", file=sys.stderr)
     except OSError as e:
         if e.errno not in (errno.ENOSPC, errno.EDQUOT):

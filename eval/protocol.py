@@ -2,17 +2,20 @@
 
 For each fold the method is built fresh, ``fit`` on the fold's training videos and asked to
 segment the test frames of its held-out videos, given the ground-truth foreground masks.
-Every method runs in its own process (:class:`MethodSandbox`): self-supervised methods get
-unlabeled :class:`~selfseg.dataset.Video` objects of a copy of the dataset without ground truth
-(:func:`unlabeled_view`) and never its path; only methods declaring ``needs_ground_truth`` get
-:class:`~selfseg.dataset.LabeledVideo` objects. Predictions are written to disk, then scored
-from disk. Output layout under ``OUT`` (default ``results/``)::
+Every method runs in its own process, in a sandbox (:mod:`selfseg.eval.sandbox`) that holds the fold's
+inputs only: the videos of a copy of the dataset without ground truth (:func:`unlabeled_view`), read as
+unlabeled :class:`~selfseg.dataset.Video` objects. Only registered methods whose registry entry gives them
+labels (and a user's method run with ``--method-needs-ground-truth``) get the fold's *training* videos with
+their labels, as :class:`~selfseg.dataset.LabeledVideo` objects; the test videos' labels only the oracle.
+The method writes its predictions into a folder of its own; the evaluator reads them once the method's
+process has exited, checks them, scores them and files them. Output layout under ``OUT`` (default ``results/``)::
 
     scores/<dataset>/<name>/fold<k>.json          result record (schema below, SCHEMA_VERSION)
     scores/<dataset>/<name>/fold<k>.frames.jsonl  one line of metrics per test frame
     predictions/<name>/<dataset>/<video_id>/<frame_id:06d>.png   uint16 instance maps
     work/<name>/<dataset>/fold<k>/                the method's cache (``Method.workdir``)
     work/_views/<content hash>-<poses>/<folder>/  the unlabeled copy of the dataset that methods see
+    work/_stages/<content hash>-<poses>/          registered methods' per-video stage caches (``Method.stage_root``)
     rejected/<dataset>/<name>/fold<k>.json        a fold whose method reached for ground truth (not scored)
 
 ``<name>`` is the method name unless ``--name`` gives a variant name; ``<dataset>`` is the dataset's name,
@@ -26,27 +29,24 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import importlib.metadata
-import multiprocessing
 import os
-import pickle
 import shutil
-import signal
+import stat
 import subprocess
-import threading
 import time
-import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.config import ConfigError, config_hash, to_dict
-from selfseg.dataset import (DATASET_INFO, DEPTH, FORMAT_VERSION, RGB, SCENE_CAMERA, Dataset, DatasetError,
-                             GroundTruthAccessError, dataset_identity, ground_truth_attempts, read_inst,
-                             sandbox_ground_truth_guard, write_inst)
+from selfseg.config import ConfigError, config_hash, from_dict, to_dict
+from selfseg.dataset import (DATASET_INFO, DEPTH, FORMAT_VERSION, RGB, SCENE_CAMERA, VIDEO_DIR, Dataset, DatasetError,
+                             read_inst, write_inst)
 from selfseg.eval.aggregate import N_BOOTSTRAP, BOOTSTRAP_SEED, SegmentationEvaluator
+from selfseg.eval.sandbox import Job, MethodRef, Mount, check_mounts, raise_reply_error, run_method_process
 from selfseg.fileio import FileFormatError, atomic_dir, atomic_write_text, dumps_json, read_json, write_json
+from selfseg.guard import GroundTruthAccessError, guard_paths
 from selfseg.method_api import Method
 
 SCHEMA_VERSION = 1
@@ -56,7 +56,9 @@ FRAMES_JSONL = "scores/{dataset}/{name}/fold{fold}.frames.jsonl"
 PREDICTIONS_DIR = "predictions/{name}/{dataset}"
 PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"  # one frame's instance map in PREDICTIONS_DIR (and in `external`'s input)
 WORK_DIR = "work/{name}/{dataset}/fold{fold}"
-STAGES_DIR = "work/_stages"  # per-video stage caches shared by every run and fold in OUT (methods' stage_root)
+STAGES_DIR = "work/_stages"  # per-video stage caches shared by every run and fold in OUT (evaluate3d's stage_root)
+STAGE_ROOT_DIR = "work/_stages/{content_hash}-{poses}"  # registered methods' stage_root under evaluate (one dataset)
+METHOD_OUTPUT_DIR = "predictions/{name}/.{dataset}.fold{fold}.method"  # where the method's process writes predictions
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
 VERSIONED_PACKAGES = ("selfseg", "numpy", "scipy", "torch", "open3d-cpu", "opencv-python-headless", "trimesh")
@@ -80,6 +82,8 @@ class EvalOptions:
     foreground: str = "gt"
     n_boot: int = N_BOOTSTRAP
     seed: int = BOOTSTRAP_SEED  # bootstrap seed
+    # a user's method (``package.module:Class``) is given its training videos' labels (never the test videos')
+    method_needs_ground_truth: bool = False
 
     def __post_init__(self):
         if self.frame_stride < 1:
@@ -202,121 +206,128 @@ def unlabeled_view(dataset: Dataset, out: Path, poses_given: bool) -> Path:
     return view
 
 
-# Errors a method's sandbox reports that keep their meaning (one line, exit code 2) in the evaluator.
-_INPUT_ERRORS = (DatasetError, FileFormatError, ConfigError, FileNotFoundError, MethodOutputError)
+# Errors a method's process reports that keep their meaning (one line, exit code 2) in the evaluator.
+_INPUT_ERRORS = (MethodOutputError, DatasetError, FileFormatError, ConfigError, FileNotFoundError)
 
 
-def _sandbox_main(conn, payload: bytes, identities: list[tuple[int, int]], gt_allowed: bool) -> None:
-    """A method's process: guard ground truth (unless the method may read it), then import and build the
-    method (import-time code runs guarded too) and serve ``fit`` / ``segment`` requests from the parent."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the evaluator stops this process
-    if not gt_allowed:
-        import platform
-        from multiprocessing import resource_tracker
+@dataclass
+class FoldJob:
+    """A fold as the method's process runs it (paths as that process sees them)."""
 
-        import numpy.testing  # noqa: F401  (libraries start `lscpu` / `uname -p` once: before programs are refused)
-        platform.processor()
-        resource_tracker.ensure_running()  # process pools need it; it runs no method code
-        multiprocessing.set_start_method("fork", force=True)  # Linux's default (a spawned child inherits 'spawn')
-        sandbox_ground_truth_guard(identities)
-    method = view = None
-    while True:
+    label: str  # "<name> fold <k>", for its progress bar
+    config: dict | None  # the method's config (None: its defaults)
+    root: str  # the dataset folder the method sees
+    train_ids: list[str]
+    test_frames: dict[str, list[int]]  # test video → its test frames
+    fg_bits: dict[str, list[np.ndarray]]  # test video → each test frame's foreground mask, np.packbits
+    labeled: tuple[bool, bool]  # whether the training videos, the test videos are opened with their labels
+    poses_given: bool
+    workdir: str
+    stage_root: str | None
+    output: str  # where it writes PREDICTION_PNG files
+    progress: bool
+
+
+def _run_fold_job(method_cls: type[Method], job: FoldJob) -> dict:
+    """In the method's process: build the method, ``fit`` it, segment the test frames and write their instance
+    maps; returns the seconds it took and the training data a method names (``train_data``)."""
+    view = Dataset(job.root)
+    method = method_cls(None if job.config is None else from_dict(method_cls.config_cls, job.config),
+                        Path(job.workdir))
+    method.stage_root = None if job.stage_root is None else Path(job.stage_root)
+    open_train, open_test = ((lambda v: view.labeled(v)) if labeled else (lambda v: view.video(v, job.poses_given))
+                             for labeled in job.labeled)
+    t0 = time.perf_counter()
+    method.fit([open_train(v) for v in job.train_ids])
+    fit_s = time.perf_counter() - t0
+    segment_s = 0.0
+    for vid, frames in tqdm(job.test_frames.items(), desc=f"{job.label}: segment", unit="video",
+                            disable=not job.progress):
+        size = view.height * view.width
+        fg = {f: np.unpackbits(b, count=size).reshape(view.height, view.width).astype(bool)
+              for f, b in zip(frames, job.fg_bits[vid])}
+        t0 = time.perf_counter()
+        preds = method.segment_video(open_test(vid), frames, fg)
+        for f in frames:
+            pred = _check_prediction(preds.get(f), method_cls.name, vid, f, (view.height, view.width))
+            write_inst(Path(job.output) / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
+        segment_s += time.perf_counter() - t0
+    return {"fit_s": fit_s, "segment_s": segment_s, "train_data": getattr(method, "train_data", None)}
+
+
+def _method_prediction(output: Path, name: str, video_id: str, frame_id: int, shape: tuple[int, int]) -> np.ndarray:
+    """A prediction the method's process wrote into ``output``, read only if it is a plain file in a plain folder
+    (a link could point the evaluator at ground truth the method never saw; a pipe would block it)."""
+    path = output / PREDICTION_PNG.format(video_id=video_id, frame_id=frame_id)
+    for p, plain in ((path.parent, stat.S_ISDIR), (path, stat.S_ISREG)):
         try:
-            request = conn.recv()
-        except EOFError:  # the evaluator is gone
-            break
-        try:
-            t0 = time.perf_counter()
-            if request[0] == "stop":
-                break
-            if request[0] == "start":
-                method_cls, config, workdir, stage_root, view_root, poses_given = pickle.loads(payload)
-                view = Dataset(view_root)
-                method = method_cls(config, workdir)
-                method.stage_root = stage_root
-                open_video = (lambda v: view.labeled(v)) if gt_allowed else (lambda v: view.video(v, poses_given))
-                reply = None
-            elif request[0] == "fit":
-                method.fit([open_video(v) for v in request[1]])
-                reply = getattr(method, "train_data", None)  # a method trained on another dataset names it
-            else:  # ("segment", video_id, frame_ids, fg masks, staging folder)
-                _, vid, frames, fg, staging = request
-                preds = method.segment_video(open_video(vid), frames, fg)
-                for f in frames:
-                    pred = _check_prediction(preds.get(f), method_cls.name, vid, f, (view.height, view.width))
-                    write_inst(Path(staging) / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
-                reply = None
-            conn.send(("ok", reply, time.perf_counter() - t0, list(ground_truth_attempts)))
-        except BaseException as e:  # noqa: BLE001 (reported to the parent, which raises)
-            if isinstance(e, GroundTruthAccessError) and not ground_truth_attempts:  # refused in a forked worker
-                ground_truth_attempts.append(str(e))
-            try:
-                error = pickle.dumps(e) if isinstance(e, _INPUT_ERRORS) else None
-            except Exception:  # noqa: BLE001 (an unpicklable error is reported by its traceback)
-                error = None
-            conn.send(("error", (error, type(e).__name__, traceback.format_exc()), 0.0, list(ground_truth_attempts)))
+            mode = os.lstat(p).st_mode
+        except FileNotFoundError:
+            raise MethodOutputError(f"method {name!r} wrote no prediction for video {video_id} frame {frame_id}") \
+                from None
+        if not plain(mode):
+            raise MethodOutputError(f"method {name!r}: its prediction {p.relative_to(output)} is not a plain "
+                                    f"{'folder' if plain is stat.S_ISDIR else 'file'}")
+    pred = read_inst(path)
+    if pred.shape != shape:
+        raise MethodOutputError(f"method {name!r}, video {video_id} frame {frame_id}: expected a {shape[1]}×{shape[0]} "
+                                f"instance map, got {pred.shape[1]}×{pred.shape[0]}")
+    return pred
 
 
-class MethodSandbox:
-    """Runs a method's ``fit`` and ``segment`` in a child process (``spawn``: nothing of the evaluator's
-    memory is inherited) that sees only :func:`unlabeled_view` of the dataset, never its path, and
-    guards it by identity as a second line. Methods declaring ``needs_ground_truth`` get the labeled
-    dataset. One process per fold; ``call("start")`` imports and builds the method, then ``call("fit",
-    ids)`` and ``call("segment", ...)``. ``attempts`` lists every refused access, caught by the method or not."""
+def _fold_process(ref: MethodRef, config, dataset: Dataset, view: Path, fold: int, out: Path, options: EvalOptions,
+                  train_ids: list[str], test_frames: dict[str, list[int]], fg_bits: dict[str, list[np.ndarray]],
+                  output: Path, progress: bool) -> dict:
+    """Run a fold's method in its process and return its reply. What it is given (``ground truth``: the labels
+    granted, see :data:`selfseg.eval.sandbox.GROUND_TRUTH`):
 
-    def __init__(self, method_cls: type[Method], config, workdir: Path, dataset: Dataset, out: Path,
-                 poses_given: bool):
-        self.name = method_cls.name
-        gt_allowed = method_cls.needs_ground_truth
-        self.root = dataset.root if gt_allowed else unlabeled_view(dataset, out, poses_given)
-        self._real = dataset.root
-        self.attempts: list[str] = []
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        stage_root = (Path(out) / STAGES_DIR).resolve()
-        payload = pickle.dumps((method_cls, config, workdir, stage_root, str(self.root.resolve()), poses_given))
-        identities = [dataset_identity(dataset.root), dataset_identity(self.root)]
-        self._proc = ctx.Process(target=_sandbox_main, args=(child, payload, identities, gt_allowed),
-                                 name=f"selfseg-{self.name}")  # not daemonic: it may try to start children
-        main_thread = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-        try:  # the child starts with Ctrl-C ignored (kept across exec): the evaluator alone handles it
-            self._proc.start()
-        finally:
-            if main_thread:
-                signal.signal(signal.SIGINT, previous)
-        child.close()
+    * the dataset as ``view`` (:func:`unlabeled_view`) at the view's path: ``dataset_info.json`` and every video's folder,
+      read-only; the training videos' folders (labels included) from the dataset itself when labels are
+      granted, the test videos' too only for "all" (the oracle);
+    * its work folder, writable: the run's ``work/<name>/<dataset>/`` (its folds share it) when it is given no
+      labels, else only the fold's (no fold sees labels another fold was given, which include its test videos');
+    * a registered method: its stage root ``STAGE_ROOT_DIR`` (writable, shared with the registered methods
+      that see the same videos) and the folders its config names (``registry.CONFIG_DIRS``); a user's method:
+      no stage root (it caches in its work folder);
+    * ``output``, writable, for its predictions.
 
-    def call(self, *request):
-        """Send a request; returns (reply, seconds). Raises the method's error, GroundTruthAccessError first."""
-        self._conn.send(request)
-        while not self._conn.poll(0.2):
-            if not self._proc.is_alive():
-                raise RuntimeError(f"method {self.name!r}: its process died (exit code {self._proc.exitcode})")
-        status, reply, seconds, self.attempts = self._conn.recv()
-        if self.attempts:
-            raise GroundTruthAccessError(f"{len(self.attempts)} attempt(s), first: {self.attempts[0]}")
-        if status == "error":
-            error, kind, tb = reply
-            if error is not None:
-                error = pickle.loads(error)
-                error.args = tuple(a.replace(str(self.root.resolve()), str(self._real)) if isinstance(a, str) else a
-                                   for a in error.args)  # name the dataset's files, not the view's
-                raise error
-            raise RuntimeError(f"method {self.name!r} failed with {kind} in its process:\n{tb}")
-        return reply, seconds
-
-    def close(self) -> None:
-        if self._proc.is_alive():
-            try:
-                self._conn.send(("stop",))
-            except OSError:
-                pass
-            self._proc.join(5)
-            if self._proc.is_alive():
-                self._proc.kill()
-                self._proc.join()
-        self._conn.close()
+    Unsandboxed, the same paths are given to a plain child process; it reads the real dataset when given labels."""
+    granted = "train" if options.method_needs_ground_truth else ref.ground_truth
+    test_ids = list(test_frames)
+    real = dataset.root.resolve()
+    fmt = {"name": options.name or ref.name, "dataset": results_key(out, dataset), "fold": fold}
+    workdir = (out / WORK_DIR.format(**fmt)).resolve()
+    workroot = workdir.parent if granted == "none" else workdir
+    poses = "poses" if options.poses_given else "noposes"
+    stage_root = None if ref.user else (out / STAGE_ROOT_DIR.format(content_hash=dataset.content_hash(),
+                                                                     poses=poses)).resolve()
+    config_dict = None if config is None else to_dict(config)
+    config_dirs = []
+    for key, mode in ref.config_dirs:
+        value = (config_dict or {}).get(key)
+        if value and mode == "rw":
+            Path(value).mkdir(parents=True, exist_ok=True)
+        if value and os.path.exists(value):
+            config_dirs.append(Mount.same(value, writable=mode == "rw"))
+    check_mounts(config_dirs, [real, out], [real])
+    workdir.mkdir(parents=True, exist_ok=True)
+    writable = [Mount.same(p, writable=True) for p in (workroot, stage_root, output.resolve()) if p is not None]
+    for m in writable:
+        Path(m.src).mkdir(parents=True, exist_ok=True)
+    check_mounts(writable, [real], [real])
+    labeled = {v: granted == "all" or (granted == "train" and v in train_ids) for v in dataset.video_ids}
+    mounts = [Mount(str(view / DATASET_INFO), str(view / DATASET_INFO)), *writable, *config_dirs]
+    mounts += [Mount(str((real if labeled[v] else view) / VIDEO_DIR.format(video_id=v)),
+                     str(view / VIDEO_DIR.format(video_id=v))) for v in dataset.video_ids]
+    # unsandboxed, a method given labels reads the dataset itself
+    root = view if ref.sandboxed or granted == "none" else real
+    guard = (guard_paths(real, view) if granted == "none" else
+             guard_paths(*(r / VIDEO_DIR.format(video_id=v) for r in (real, view) for v in test_ids))
+             if granted == "train" else [])
+    job = FoldJob(f"{fmt['name']} fold {fold}", config_dict, str(root), train_ids, test_frames, fg_bits,
+                  (granted != "none", granted == "all"), options.poses_given, str(workdir),
+                  None if stage_root is None else str(stage_root), str(output.resolve()), progress)
+    return run_method_process(Job(ref, f"{__name__}:_run_fold_job", job, guard), mounts, [real, out])
 
 
 def results_key(out: Path, dataset: Dataset) -> str:
@@ -335,7 +346,7 @@ def _resume_key(record: dict) -> dict:
             "dataset": record["dataset"]["content_hash"], "commit": record["git"]["commit"]}
 
 
-def finished_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out: Path,
+def finished_fold(method_cls: MethodRef | type[Method], config, dataset: Dataset, fold: int, out: Path,
                   options: EvalOptions = EvalOptions()) -> dict | None:
     """The stored record of this fold if an earlier run had the same method, config, options, dataset
     content and commit and its predictions are all in place (``evaluate`` resumes with it), else None."""
@@ -356,80 +367,93 @@ def finished_fold(method_cls: type[Method], config, dataset: Dataset, fold: int,
     return record
 
 
-def run_fold(method_cls: type[Method], config, dataset: Dataset, fold: int, out: Path,
+def run_fold(method: MethodRef | type[Method], config, dataset: Dataset, fold: int, out: Path,
              options: EvalOptions = EvalOptions(), progress: bool = True) -> dict:
     """Fit, segment, write and score one fold; writes the result JSON and frame sidecar; returns the record.
 
-    The method runs in a :class:`MethodSandbox`; if it reached for ground truth, a record with
-    ``ground_truth_attempts`` is written to ``REJECTED_JSON`` (nothing is scored) and
-    :class:`GroundTruthAccessError` is raised. Predictions are written to a staging folder and
-    replace each test video's folder only once the fold is complete (no stale frames remain)."""
+    ``method``: a :class:`~selfseg.eval.sandbox.MethodRef` (``evaluate``), or a Method subclass already imported
+    here (run by its import path, see ``MethodRef.of_class``); ``config``: its config (dataclass or dict; None:
+    the defaults). The method runs in its own process (:func:`_fold_process`); if it reached for ground truth,
+    a record with ``ground_truth_attempts`` is written to ``REJECTED_JSON`` (nothing is scored) and
+    :class:`GroundTruthAccessError` is raised. Its predictions are read once its process has exited, checked,
+    scored and written to a staging folder, which replaces each test video's folder only once the fold is
+    complete (no stale frames remain)."""
+    ref = method if isinstance(method, MethodRef) else MethodRef.of_class(method)
+    if options.method_needs_ground_truth and not ref.user:
+        raise ConfigError(f"--method-needs-ground-truth is for a method of your own; {ref.name!r} is registered "
+                          "and its registry entry says which labels it gets")
     out = Path(out)
-    name = options.name or method_cls.name
+    name = options.name or ref.name
     key = results_key(out, dataset)
     fmt = {"dataset": key, "name": name, "fold": fold}
     train_ids, test_ids = fold_split(dataset, fold)
-    workdir = out / WORK_DIR.format(**fmt)
-    workdir.mkdir(parents=True, exist_ok=True)
     pred_dir = out / PREDICTIONS_DIR.format(**fmt)
     staging = pred_dir.parent / f".{pred_dir.name}.fold{fold}.partial"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    output = out / METHOD_OUTPUT_DIR.format(**fmt)
+    for d in (staging, output):
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
 
-    seg_s = 0.0
-    n_frames = 0
-    written: list[tuple[str, int]] = []
+    test_frames: dict[str, list[int]] = {}
+    fg_bits: dict[str, list[np.ndarray]] = {}
     gts: dict[tuple[str, int], np.ndarray] = {}
-    sandbox = MethodSandbox(method_cls, config, workdir.resolve(), dataset, out, options.poses_given)
+    for vid in test_ids:
+        labeled = dataset.labeled(vid)
+        test_frames[vid] = select_test_frames(labeled.frame_ids, options.frame_stride, options.limit)
+        for f in test_frames[vid]:
+            gts[vid, f] = labeled.inst(f)
+        fg_bits[vid] = [np.packbits(gts[vid, f] > 0 if options.foreground == "gt" else estimated_foreground(labeled, f))
+                        for f in test_frames[vid]]
+    granted = "train" if options.method_needs_ground_truth else ref.ground_truth
+    isolation = {"isolation": ref.isolation, "ground_truth": granted}
+    view = unlabeled_view(dataset, out, options.poses_given).resolve()
     try:
-        sandbox.call("start")  # imports and builds the method, in its process
-        train_data, fit_s = sandbox.call("fit", train_ids)
-        for vid in tqdm(test_ids, desc=f"{name} fold {fold}: segment", unit="video", disable=not progress):
-            labeled = dataset.labeled(vid)
-            frames = select_test_frames(labeled.frame_ids, options.frame_stride, options.limit)
-            fg = {}
-            for f in frames:
-                gts[vid, f] = labeled.inst(f)
-                fg[f] = gts[vid, f] > 0 if options.foreground == "gt" else estimated_foreground(labeled, f)
-            _, seconds = sandbox.call("segment", vid, frames, fg, str(staging.resolve()))
-            seg_s += seconds
-            n_frames += len(frames)
-            written += [(vid, f) for f in frames]
-    except GroundTruthAccessError as e:
-        write_json(out / REJECTED_JSON.format(**fmt), {
-            **provenance(method_cls.name, name, config, dataset, "2d"), "fold": fold,
-            "options": dataclasses.asdict(options), "ground_truth_attempts": sandbox.attempts})
-        shutil.rmtree(staging, ignore_errors=True)
-        raise GroundTruthAccessError(f"method {name!r}, fold {fold}: {e}") from None
+        reply = _fold_process(ref, config, dataset, view, fold, out, options, train_ids, test_frames, fg_bits,
+                              output, progress)
+        attempts = [str(a) for a in reply.get("ground_truth_attempts") or []]
+        if attempts:
+            write_json(out / REJECTED_JSON.format(**fmt), {
+                **provenance(ref.name, name, config, dataset, "2d"), "fold": fold,
+                "options": dataclasses.asdict(options), **isolation, "ground_truth_attempts": attempts})
+            raise GroundTruthAccessError(f"method {name!r}, fold {fold}: {len(attempts)} attempt(s), first: "
+                                         f"{attempts[0]}")
+        raise_reply_error(reply, ref.name, _INPUT_ERRORS, (str(view), str(dataset.root)))
+
+        evaluator = SegmentationEvaluator(n_boot=options.n_boot, seed=options.seed)
+        score_s = 0.0
+        for vid, frames in test_frames.items():
+            for f in tqdm(frames, desc=f"{name} fold {fold}: score {vid}", unit="frame", disable=not progress):
+                t0 = time.perf_counter()
+                pred = _method_prediction(output, ref.name, vid, f, (dataset.height, dataset.width))
+                evaluator.process(vid, f, pred, gts[vid, f])
+                score_s += time.perf_counter() - t0
+                write_inst(staging / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     finally:
-        sandbox.close()
-
-    evaluator = SegmentationEvaluator(n_boot=options.n_boot, seed=options.seed)
-    t0 = time.perf_counter()
-    for vid, f in tqdm(written, desc=f"{name} fold {fold}: score", unit="frame", disable=not progress):
-        evaluator.process(vid, f, read_inst(staging / PREDICTION_PNG.format(video_id=vid, frame_id=f)), gts[vid, f])
-    score_s = time.perf_counter() - t0
+        shutil.rmtree(output, ignore_errors=True)
     result = evaluator.evaluate()
 
+    n_frames = len(gts)
     record = {
-        **provenance(method_cls.name, name, config, dataset, "2d"),
+        **provenance(ref.name, name, config, dataset, "2d"),
         "fold": fold,
         "n_folds": N_FOLDS,
         "train_videos": train_ids,
         "test_videos": test_ids,
         "options": dataclasses.asdict(options),
+        **isolation,
         **result,
-        "timings": {"fit_s": round(fit_s, 4), "ms_per_frame": round(1000 * seg_s / max(n_frames, 1), 4),
+        "timings": {"fit_s": round(float(reply.get("fit_s", 0.0)), 4),
+                    "ms_per_frame": round(1000 * float(reply.get("segment_s", 0.0)) / max(n_frames, 1), 4),
                     "score_ms_per_frame": round(1000 * score_s / max(n_frames, 1), 4)},
         "predictions_dir": str(pred_dir.resolve()),
         "ground_truth_attempts": [],
     }
     record["dataset"]["key"] = key
-    if train_data:  # hook: a method trained on another dataset names it (a dict) in fit
-        record["train_data"] = train_data
+    if isinstance(reply.get("train_data"), dict):  # hook: a method trained on another dataset names it in fit
+        record["train_data"] = reply["train_data"]
     for vid in test_ids:  # swap in this fold's videos: no frame of an earlier run stays behind
         shutil.rmtree(pred_dir / vid, ignore_errors=True)
         pred_dir.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ Rows (each a result record with ``task = "3d"``, named after the row):
   the most a perfect matching and pruning step could merge on this over-segmentation.
 
 The pipeline (:class:`selfseg.method.pipeline.Ours`) runs on **all** videos of the dataset as one
-unlabeled collection, under :func:`~selfseg.dataset.ground_truth_forbidden`: no labels are used, so
+unlabeled collection, under :func:`~selfseg.guard.ground_truth_forbidden`: no labels are used, so
 there are no folds and records carry ``fold = "all"``. Its stages live in the ``evaluate`` layout
 (``OUT/work/ours/<dataset>/foldall``, per-video stages in ``OUT/work/_stages/``), so they are
 shared with ``evaluate --method ours`` runs in the same ``OUT``. The stage cache holds one
@@ -39,8 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, load_config
-from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, LabeledVideo, ground_truth_forbidden,
-                             invert_T, transform_points)
+from selfseg.dataset import Dataset, DatasetError, LabeledVideo, invert_T, transform_points
 from selfseg.eval.aggregate import fmt
 from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
@@ -48,6 +47,7 @@ from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels,
 from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
 from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
 from selfseg.fileio import FileFormatError, write_json
+from selfseg.guard import GroundTruthAccessError, ground_truth_forbidden
 from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
 from selfseg.method.recon_stage import ReconStage
 

@@ -112,13 +112,23 @@ def _ranked(groups: dict, task: str, keep, keys) -> list[tuple[str, dict]]:
     return sorted(rows, key=lambda r: (-np.nan_to_num(r[1]["mean"]["IoU"], nan=-1), r[0]))
 
 
+def _label(groups: dict, task: str, name: str) -> str:
+    """A row's method cell: the run name, marked when a fold ran outside the sandbox (no user namespaces) or a
+    user's method was given its training videos' labels (evaluate --method-needs-ground-truth)."""
+    recs = groups[task, name]
+    marks = ["unsandboxed"] if any(r.get("isolation") == "unsandboxed" for r in recs) else []
+    if any(r.get("options", {}).get("method_needs_ground_truth") for r in recs):
+        marks.append("given training labels")
+    return f"**{name}**" + "".join(f" *({m})*" for m in marks)
+
+
 def table1(groups: dict) -> list[str]:
     head = ["Method", "Prec", "Recall", "IoU", "IoU 95% CI", "Overlap F", "Boundary F", "% F≥.75", "ms/frame",
             "folds", "frames"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, s in _ranked(groups, "2d", lambda n: not _is_ablation(n), METRIC_KEYS):
         lo, hi = s["ci95"]["IoU"]
-        lines.append(f"| **{name}** | {_pm(s, 'P')} | {_pm(s, 'R')} | {_pm(s, 'IoU')} | {fmt(lo)}–{fmt(hi)} | "
+        lines.append(f"| {_label(groups, '2d', name)} | {_pm(s, 'P')} | {_pm(s, 'R')} | {_pm(s, 'IoU')} | {fmt(lo)}–{fmt(hi)} | "
                      f"{_pm(s, 'overlap_F')} | {_pm(s, 'boundary_F')} | {100 * s['mean']['F75']:.1f} | "
                      f"{s['ms_per_frame']:.1f} | {','.join(map(str, s['folds']))} | {s['n_frames']} |")
     return lines + _paper_rows(PAPER_TABLE1, len(head) - 4)
@@ -129,7 +139,7 @@ def _short_table(groups: dict, task: str, keep, keys, ref: dict) -> list[str]:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, s in _ranked(groups, task, keep, keys):
         lo, hi = s["ci95"]["IoU"]
-        lines.append(f"| **{name}** | {_pm(s, 'P')} | {_pm(s, 'R')} | {_pm(s, 'IoU')} | {fmt(lo)}–{fmt(hi)} | "
+        lines.append(f"| {_label(groups, task, name)} | {_pm(s, 'P')} | {_pm(s, 'R')} | {_pm(s, 'IoU')} | {fmt(lo)}–{fmt(hi)} | "
                      f"{','.join(map(str, s['folds']))} |")
     return lines + _paper_rows(ref, len(head) - 4)
 

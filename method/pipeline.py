@@ -36,8 +36,9 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import to_dict
-from selfseg.dataset import Video, ground_truth_forbidden, read_inst, write_inst
+from selfseg.dataset import Video, read_inst, write_inst
 from selfseg.fileio import hash_json, read_json, write_json
+from selfseg.guard import ground_truth_forbidden
 from selfseg.method.background import BackgroundConfig
 from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConfig, video_key
 from selfseg.method.overseg import OversegConfig, oversegment

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
-# Installs the Debian/Ubuntu shared libraries that open3d (libusb) and bpy (X11/GL client libs) load.
+# Installs the Debian/Ubuntu shared libraries that open3d (libusb) and bpy (X11/GL client libs) load, and
+# bubblewrap, the sandbox evaluate runs every method in (selfseg/eval/sandbox.py).
 # Idempotent: does nothing when they are all present.
 set -euo pipefail
-pkgs=(libusb-1.0-0 libx11-6 libxrender1 libxxf86vm1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libgl1 libegl1 libgomp1)
+pkgs=(libusb-1.0-0 libx11-6 libxrender1 libxxf86vm1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libgl1 libegl1 libgomp1
+      bubblewrap)
 command -v dpkg-query >/dev/null || { echo "install_system_deps: not a Debian-like system; make sure these are installed: ${pkgs[*]}" >&2; exit 0; }
 missing=()
 for p in "${pkgs[@]}"; do

@@ -21,19 +21,15 @@ poses as 4×4 float64 ``T_a_b`` mapping points from frame b into frame a. The ca
 OpenCV's: x right, y down, z forward.
 
 Ground truth (``mask_inst/``, ``scene_gt.json``, ``scene_info.json``) is reachable only through
-:class:`LabeledVideo`. Methods get :class:`Video`, which has no labels, and
-:func:`ground_truth_forbidden` makes any attempt to open a ground-truth file raise.
+:class:`LabeledVideo`. Methods get :class:`Video`, which has no labels (``evaluate`` runs them in a
+sandbox where only the files they may read exist, :mod:`selfseg.eval.sandbox`).
 """
 from __future__ import annotations
 
-import contextlib
-import importlib.abc
-import importlib.machinery
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -66,10 +62,6 @@ def video_id_str(index: int) -> str:
 
 class DatasetError(ValueError):
     """Bad or inconsistent dataset content; the message names the file and the problem."""
-
-
-class GroundTruthAccessError(PermissionError):
-    """Raised when code running under :func:`ground_truth_forbidden` opens a ground-truth file."""
 
 
 # ---- image readers and writers --------------------------------------------------------------
@@ -426,210 +418,6 @@ class Dataset:
                 p = self.root / template.format(video_id=vid)
                 parts.append(read_json(p) if p.is_file() else None)
         return hash_json(parts, n=16)
-
-
-# ---- ground-truth guard ----------------------------------------------------------------------
-# Process-wide (every thread is guarded); a method's sandbox process guards the whole file system.
-_guard_roots: list[Path] | None = None
-_guard_inodes: set[tuple[int, int]] = set()  # (st_dev, st_ino) of dataset folders guarded by identity
-_hook_installed = False
-# Every refused access in this process, caught by the method or not (the sandbox reports them).
-ground_truth_attempts: list[str] = []
-# Starting programs is refused in a sandbox; os.fork is allowed: a forked worker inherits this guard.
-_PROCESS_EVENTS = ("subprocess.Popen", "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.forkpty",
-                   "pty.spawn")
-_PATH_EVENTS = ("open", "os.listdir", "os.scandir", "os.link", "os.symlink", "os.rename", "shutil.copyfile",
-                "shutil.copytree", "os.chdir")
-_sandboxed = False
-# libc entry points that open files or start programs: a method's ctypes may not look them up
-_CTYPES_DENIED = {"open", "open64", "openat", "openat64", "fopen", "fopen64", "freopen", "creat", "opendir",
-                  "syscall", "execve", "execv", "execvp", "system", "popen", "fork", "vfork", "posix_spawn", "dlopen"}
-
-
-def _is_ground_truth(path: str, roots: list[Path], inodes: set[tuple[int, int]]) -> bool:
-    if inodes and not os.path.isabs(path) and any(part in GROUND_TRUTH_NAMES for part in Path(path).parts):
-        return True  # relative to an unknown folder (os.open(dir_fd=...)): refused in a sandbox
-    for p in {Path(os.path.abspath(path)), Path(os.path.realpath(path))}:  # realpath: symlinks, /proc/self/root
-        if not any(part in GROUND_TRUTH_NAMES for part in p.parts):
-            continue
-        for root in roots:
-            try:
-                rel = p.relative_to(root)
-            except ValueError:
-                continue
-            if any(part in GROUND_TRUTH_NAMES for part in rel.parts):
-                return True
-        for parent in p.parents if inodes else ():  # a dataset known by identity, not by path
-            try:
-                st = os.stat(parent)
-            except OSError:
-                continue
-            if (st.st_dev, st.st_ino) in inodes:
-                return True
-    return False
-
-
-def _refuse(what: str) -> None:
-    ground_truth_attempts.append(what)
-    raise GroundTruthAccessError(f"{what}: ground truth is off limits here (self-supervised path)")
-
-
-def _check_path(path: Any) -> None:
-    if (_guard_roots or _guard_inodes) and isinstance(path, (str, bytes, os.PathLike)):
-        path = os.fsdecode(path)
-        if _is_ground_truth(path, _guard_roots or [], _guard_inodes):
-            _refuse(path)
-
-
-def _ctypes_text(arg: Any) -> Any:
-    """The text a ctypes argument carries (c_char_p, c_wchar_p, char arrays), else the argument."""
-    for attr in ("value", "raw"):
-        try:
-            v = getattr(arg, attr)
-        except (AttributeError, TypeError, ValueError):
-            continue
-        if isinstance(v, (str, bytes)):
-            return v
-    return arg
-
-
-def _audit(event: str, args: tuple) -> None:
-    if event in _PATH_EVENTS and args:
-        _check_path(args[0])
-        if event in ("os.link", "os.symlink", "os.rename", "shutil.copyfile", "shutil.copytree") and len(args) > 1:
-            _check_path(args[1])
-    elif _sandboxed and event in _PROCESS_EVENTS:
-        _refuse(f"{event} {args[:2]!r} (methods may not start programs)")
-    elif _sandboxed and event in ("socket.connect", "socket.sendto") and len(args) > 1:
-        _refuse(f"{event} to {args[1]!r} (methods may not use the network or local sockets: a server, "
-                "e.g. a running Ray cluster, could hand them ground truth)")
-    elif _sandboxed and event == "ctypes.dlsym" and len(args) > 1 and args[1] in _CTYPES_DENIED:
-        _refuse(f"ctypes lookup of {args[1]!r} (methods may not open files or start programs through ctypes)")
-    elif _sandboxed and event == "ctypes.call_function" and len(args) > 1:
-        for a in args[1]:
-            text = _ctypes_text(a)
-            if isinstance(text, (str, bytes)) and any(n in os.fsdecode(text) for n in GROUND_TRUTH_NAMES):
-                _check_path(text)
-
-
-def _guard_cv2_readers() -> None:
-    """OpenCV reads files in C++, out of the audit hook's sight: check its readers' paths too."""
-    import cv2
-
-    for name in ("imread", "imreadmulti", "imreadanimation"):
-        original = getattr(cv2, name, None)
-        if original is None or getattr(original, "_selfseg_guarded", False):
-            continue
-
-        def guarded(filename, *args, _original=original, **kwargs):
-            _check_path(filename)
-            return _original(filename, *args, **kwargs)
-
-        guarded._selfseg_guarded = True
-        setattr(cv2, name, guarded)
-    if not getattr(cv2.VideoCapture, "_selfseg_guarded", False):  # also reads image sequences ("%06d.png")
-        original_capture = cv2.VideoCapture
-
-        def guarded_capture(*args, **kwargs):
-            source = args[0] if args else kwargs.get("filename", kwargs.get("index"))
-            if source is None and _sandboxed:  # an empty capture's open() would go unchecked
-                _refuse("cv2.VideoCapture() without a source")
-            _check_path(source)
-            return original_capture(*args, **kwargs)
-
-        guarded_capture._selfseg_guarded = True
-        cv2.VideoCapture = guarded_capture
-
-
-def _install_hook() -> None:
-    global _hook_installed
-    if not _hook_installed:
-        sys.addaudithook(_audit)
-        _guard_cv2_readers()
-        _hook_installed = True
-
-
-@contextlib.contextmanager
-def ground_truth_forbidden(*dataset_roots: str | os.PathLike) -> Iterator[None]:
-    """Within this block, opening or listing ground truth under the given datasets raises, in every thread.
-
-    Covers every read made through Python (``open``, ``os.open``, ``os.listdir``, this module's
-    readers, numpy, json, PIL), links and copies, symlinked or ``/proc/self/root`` paths and
-    OpenCV's readers. Every refusal is appended to :data:`ground_truth_attempts`. The evaluator's
-    method sandbox uses :func:`sandbox_ground_truth_guard` instead (the whole file system).
-    """
-    global _guard_roots
-    _install_hook()
-    previous = _guard_roots
-    roots = [Path(f(r)) for r in dataset_roots for f in (os.path.abspath, os.path.realpath)]
-    _guard_roots = (previous or []) + roots
-    try:
-        yield
-    finally:
-        _guard_roots = previous
-
-
-def dataset_identity(root: str | os.PathLike) -> tuple[int, int]:
-    """(st_dev, st_ino) of a dataset folder: how a sandbox guards it without knowing its path."""
-    st = os.stat(root)
-    return st.st_dev, st.st_ino
-
-
-def _guard_readers(module: Any) -> None:
-    """Check the file name of every ``read_*`` function of a C++ I/O module (open3d.io, open3d.t.io)."""
-    for name in dir(module):
-        original = getattr(module, name)
-        if name.startswith("read_") and callable(original) and not getattr(original, "_selfseg_guarded", False):
-            def guarded(filename, *args, _original=original, **kwargs):
-                _check_path(filename)
-                return _original(filename, *args, **kwargs)
-
-            guarded._selfseg_guarded = True
-            setattr(module, name, guarded)
-
-
-class _GuardOpen3d(importlib.abc.MetaPathFinder):
-    """Wraps open3d's file readers as soon as open3d is imported (they read in C++, unaudited)."""
-
-    def find_spec(self, fullname, path, target=None):
-        if fullname != "open3d":
-            return None
-        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
-        if spec is None or spec.loader is None:
-            return spec
-        exec_module = spec.loader.exec_module
-
-        def exec_and_guard(module):
-            exec_module(module)
-            _guard_readers(module.io)
-            _guard_readers(module.t.io)
-
-        spec.loader.exec_module = exec_and_guard
-        return spec
-
-
-def _refuse_fork_exec(*args, **kwargs):
-    _refuse("program start (_posixsubprocess.fork_exec: subprocess, multiprocessing's spawn or forkserver; methods "
-            "may not start programs)")
-
-
-def sandbox_ground_truth_guard(identities: list[tuple[int, int]]) -> None:
-    """For the rest of this process (a method's sandbox): refuse ground truth in the datasets with these
-    :func:`dataset_identity` values, by any path, starting programs (fresh interpreters would run
-    unguarded; forked workers inherit the guard) and ctypes lookups of libc's file and exec functions;
-    every attempt is recorded in :data:`ground_truth_attempts`."""
-    global _sandboxed
-    _install_hook()
-    _guard_inodes.update(identities)
-    _sandboxed = True
-    if "open3d" in sys.modules:
-        _guard_readers(sys.modules["open3d"].io)
-        _guard_readers(sys.modules["open3d"].t.io)
-    else:
-        sys.meta_path.insert(0, _GuardOpen3d())
-    import _posixsubprocess  # unaudited process starts (multiprocessing's spawn and forkserver)
-
-    _posixsubprocess.fork_exec = _refuse_fork_exec
 
 
 # ---- writers for generators -------------------------------------------------------------------

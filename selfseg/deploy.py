@@ -35,9 +35,9 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, config_hash, from_dict, load_config, to_dict
-from selfseg.dataset import (Dataset, DatasetError, GroundTruthAccessError, ground_truth_forbidden, read_depth_m,
-                             read_inst, read_rgb, validate_K, write_inst)
+from selfseg.dataset import Dataset, DatasetError, read_depth_m, read_inst, read_rgb, validate_K, write_inst
 from selfseg.fileio import FileFormatError, atomic_dir, read_json, write_json
+from selfseg.guard import GroundTruthAccessError, ground_truth_forbidden
 from selfseg.registry import UnknownMethodError, get_method_class
 
 MODEL_FORMAT = "selfseg-model"

@@ -3,10 +3,12 @@
 A method is built from its typed config dataclass, optionally ``fit`` on training videos, then
 asked to segment test frames. Methods receive :class:`selfseg.dataset.Video` objects, which
 carry RGB, depth, intrinsics and (only in the given-pose ablation) camera poses, but no ground
-truth. The evaluator runs ``fit`` and ``segment`` in a separate process, on an unlabeled view of
-the dataset (hard links of the frames, poses stripped unless given), with a ground-truth guard in
-every thread (:mod:`selfseg.eval.protocol`). Only methods that declare ``needs_ground_truth = True``
-(the supervised upper bound, the oracle) get :class:`selfseg.dataset.LabeledVideo` objects instead.
+truth. The evaluator imports the method and runs ``fit`` and ``segment`` only in the method's own
+sandboxed process, which holds an unlabeled view of the dataset (hard links of the frames, poses
+stripped unless given) and nothing else of it (:mod:`selfseg.eval.sandbox`). Which labels a method is
+given is the registry's to say (:data:`selfseg.registry.GROUND_TRUTH`: the supervised upper bound gets
+its training videos' as :class:`selfseg.dataset.LabeledVideo` objects, the oracle every video's), or
+``evaluate --method-needs-ground-truth`` for a user's method; never the class's.
 """
 from __future__ import annotations
 
@@ -33,10 +35,13 @@ class Method:
 
     name: ClassVar[str] = "method"
     config_cls: ClassVar[type] = NoConfig
-    needs_ground_truth: ClassVar[bool] = False  # True: fit/segment get LabeledVideo objects
+    # True: fit gets LabeledVideo objects where the caller hands labels out by class (train, benches); evaluate
+    # ignores it and asks the registry (selfseg.registry.GROUND_TRUTH)
+    needs_ground_truth: ClassVar[bool] = False
     needs_fit: ClassVar[bool] = False
     # A folder shared by every run and fold on the same outputs, where a method may cache per-video work (e.g.
-    # reconstructions). The harness passes it in before ``fit`` (``evaluate``: OUT/work/_stages); None: use workdir.
+    # reconstructions). The harness passes it in before ``fit`` (``evaluate``: OUT/work/_stages/<content>-<poses>
+    # for a registered method, None for a user's); None: use workdir.
     stage_root: Path | None = None
 
     def __init__(self, config=None, workdir: str | Path | None = None):

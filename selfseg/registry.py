@@ -2,8 +2,14 @@
 
 Adding a built-in method is one line in ``METHODS``; its heavy imports (torch, open3d, ...) load only
 when it is used. A user's own method needs no line here: ``evaluate --method package.module:ClassName``
-imports it from ``PYTHONPATH`` (:func:`get_method_class`). Every class must subclass
-:class:`selfseg.method_api.Method`; a registered one's ``name`` must equal its key.
+imports it from ``PYTHONPATH`` (:func:`get_method_class`; ``evaluate`` imports it only in the method's own
+sandboxed process). Every class must subclass :class:`selfseg.method_api.Method`; a registered one's
+``name`` must equal its key.
+
+What a method's sandbox holds besides the fold's unlabeled videos is a property of its entry here, never of
+the class: the labels it is given (:data:`GROUND_TRUTH`) and the folders its config names
+(:data:`CONFIG_DIRS`). A user's method gets neither, except the training videos' labels with ``evaluate
+--method-needs-ground-truth``, which its results record.
 """
 from __future__ import annotations
 
@@ -34,6 +40,18 @@ METHODS: dict[str, str] = {
 }
 
 
+# Labels a registered method's process is given (every other method: none): "train" = the fold's training
+# videos', "all" = the test videos' too (the oracle only, a check of the harness that must score 1.0).
+GROUND_TRUTH: dict[str, str] = {"supervised": "train", "ours-gt-merging": "train", "oracle": "all"}
+# Config fields of registered methods naming folders outside the dataset that their sandbox mounts, at the
+# same path: "ro" read-only (a training dataset of other objects, a predictions folder), "rw" writable.
+CONFIG_DIRS: dict[str, dict[str, str]] = {
+    **{m: {"train_data": "ro"} for m in ("v1-disjoint", "uois-sim", "sdmaskrcnn-sim")},
+    "external": {"predictions": "ro"},
+    **{m: {"stage_dir": "rw"} for m in ("ours", "ours-v2", "ours-v3", "ours-v4", "ours-gt-merging")},
+}
+
+
 class UnknownMethodError(KeyError):
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0])
@@ -43,12 +61,18 @@ def method_names() -> list[str]:
     return sorted(METHODS)
 
 
-def import_method(spec: str) -> type[Method]:
-    """``"package.module:ClassName"`` → the class, imported; UnknownMethodError (one line) if the module
-    or class is missing or the class is not a :class:`Method`."""
+def split_spec(spec: str) -> tuple[str, str]:
+    """``"package.module:ClassName"`` → (module, class name); UnknownMethodError (one line) if it is not of that form."""
     module, sep, attr = spec.partition(":")
     if not sep or not module or not attr:
         raise UnknownMethodError(f"method {spec!r}: expected a registered name or 'package.module:ClassName'")
+    return module, attr
+
+
+def import_method(spec: str) -> type[Method]:
+    """``"package.module:ClassName"`` → the class, imported; UnknownMethodError (one line) if the module
+    or class is missing or the class is not a :class:`Method`."""
+    module, attr = split_spec(spec)
     try:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -83,14 +107,23 @@ def get_method_class(name: str) -> type[Method]:
     return cls
 
 
-def _user_method(spec: str) -> type[Method]:
-    """A method outside the registry: its ``name`` names its results, so it must be its own (a folder
-    name, not the base class's, not a registered method's unless it is that very class)."""
-    cls = import_method(spec)
-    if cls.name == Method.name or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", cls.name):
+def check_user_method_name(spec: str, name: object) -> str:
+    """``name``, the ``name`` of the class ``spec`` (outside the registry) names: it names the method's results, so
+    it must be its own (a folder name, not the base class's, not a registered method's unless ``spec`` is that
+    method's entry); UnknownMethodError (one line) otherwise. Needs no import: ``evaluate`` checks the name
+    the method's process reports."""
+    if not isinstance(name, str) or name == Method.name or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
         raise UnknownMethodError(f"method {spec!r}: set the class attribute name to a name of its own "
-                                 f"(letters, digits, '.', '_', '-'), got {cls.name!r}")
-    if cls.name in METHODS and import_method(METHODS[cls.name]) is not cls:
-        raise UnknownMethodError(f"method {spec!r}: its name {cls.name!r} is a registered method's "
-                                 f"({METHODS[cls.name]}); choose another")
+                                 f"(letters, digits, '.', '_', '-'), got {name!r}")
+    if name in METHODS and METHODS[name] != spec:
+        raise UnknownMethodError(f"method {spec!r}: its name {name!r} is a registered method's "
+                                 f"({METHODS[name]}); choose another")
+    return name
+
+
+def _user_method(spec: str) -> type[Method]:
+    """A method outside the registry, imported here (``train``; tests): its name checked as
+    :func:`check_user_method_name` does."""
+    cls = import_method(spec)
+    check_user_method_name(spec, cls.name)
     return cls

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from selfseg import dataset as ds
+from selfseg import guard
 from selfseg.config import ConfigError, config_hash, load_config
 
 
@@ -66,14 +67,14 @@ def test_dataset_reader(analytic_dataset):
 def test_ground_truth_guard(analytic_dataset):
     d = ds.Dataset(analytic_dataset)
     lv = d.labeled("000001")
-    with ds.ground_truth_forbidden(analytic_dataset):
+    with guard.ground_truth_forbidden(analytic_dataset):
         d.video("000001").rgb(0)  # allowed
-        with pytest.raises(ds.GroundTruthAccessError, match="mask_inst"):
+        with pytest.raises(guard.GroundTruthAccessError, match="mask_inst"):
             lv.inst(0)
-        with pytest.raises(ds.GroundTruthAccessError):
+        with pytest.raises(guard.GroundTruthAccessError):
             open(analytic_dataset / "videos/000001/scene_gt.json").read()
         import cv2
-        with pytest.raises(ds.GroundTruthAccessError):
+        with pytest.raises(guard.GroundTruthAccessError):
             cv2.imread(str(analytic_dataset / "videos/000001/mask_inst/000000.png"), cv2.IMREAD_UNCHANGED)
         assert cv2.imread(str(analytic_dataset / "videos/000001/rgb/000000.png")) is not None
     assert lv.inst(0).shape == (120, 160)  # allowed again outside the block

@@ -4,7 +4,8 @@ import pytest
 
 from analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
-from selfseg.dataset import Dataset, ground_truth_forbidden
+from selfseg.dataset import Dataset
+from selfseg.guard import ground_truth_forbidden
 from selfseg.baselines.gt_merging import OursGTMerging
 from selfseg.method.pipeline import Ours, OursConfig, OursV2, OursV2Config, read_label_map
 

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from selfseg.baselines.external import ExternalConfig, ExternalPredictions
-from selfseg.dataset import (MASK_INST, SCENE_GT, Dataset, DatasetError, GroundTruthAccessError, LabeledVideo,
+from selfseg.dataset import (MASK_INST, SCENE_GT, Dataset, DatasetError, LabeledVideo,
                              PosesNotGiven, read_inst, write_inst)
 from selfseg.eval.metrics import METRIC_KEYS
 from selfseg.eval.protocol import WORK_DIR, EvalOptions, fold_split, make_folds, run_fold, select_test_frames
+from selfseg.guard import GroundTruthAccessError
 from selfseg.method_api import Method
 from selfseg.registry import get_method_class
 

@@ -7,7 +7,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from analytic import make_dataset, two_box_scenes
-from selfseg.dataset import Dataset, DatasetError, ground_truth_forbidden
+from selfseg.dataset import Dataset, DatasetError
+from selfseg.guard import ground_truth_forbidden
 from selfseg.method.embed_method import EmbeddingMethodConfig
 from selfseg.method.features import embed_frames, foreground_box, mask_input, segment_features
 from selfseg.method.meanshift import MeanShiftConfig

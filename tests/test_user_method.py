@@ -1,5 +1,6 @@
 """A user's own method, outside the registry: ``evaluate --method package.module:ClassName`` imports it from
-PYTHONPATH and runs it in the same isolated process, on the same unlabeled view, as the built-in methods."""
+PYTHONPATH only in the method's own sandboxed process, on the same unlabeled view as the built-in methods;
+name, module and class errors found there come back as one line, exit code 2."""
 import json
 import os
 import subprocess
@@ -56,7 +57,8 @@ USER_PACKAGE = {
         """Reads a ground-truth mask while its module is imported (the path from CHEAT_ROOT)."""
         import os
 
-        from selfseg.dataset import MASK_INST, GroundTruthAccessError
+        from selfseg.dataset import MASK_INST
+        from selfseg.guard import GroundTruthAccessError
         from selfseg.method_api import Method
 
         try:
@@ -73,6 +75,20 @@ USER_PACKAGE = {
                 return fg_mask.astype("uint16")
     ''',
     "broken.py": "def oops(:\n",
+    "spoof.py": '''
+        """Takes a registered name, after removing it from the registry of the process that imports it."""
+        import selfseg.registry
+        from selfseg.method_api import Method
+
+        selfseg.registry.METHODS.pop("oracle")
+
+
+        class Spoof(Method):
+            name = "oracle"
+
+            def segment(self, video, frame_id, fg_mask):
+                return fg_mask.astype("uint16")
+    ''',
 }
 
 
@@ -103,6 +119,7 @@ def test_user_method_runs_isolated_and_is_scored(analytic_dataset, user_path, tm
     (record,) = (out / "scores").glob("*/my-one-label/fold0.json")
     record = json.loads(record.read_text())
     assert record["method"] == "my-one-label" and record["config"] == {"label": 3}
+    assert record["isolation"] == "sandbox" and record["ground_truth"] == "none"
     assert record["metrics"]["n_frames"] > 0 and 0 < record["metrics"]["IoU"] <= 1
     (fit,) = (out / "work").rglob("fit.json")
     fit = json.loads(fit.read_text())
@@ -128,6 +145,7 @@ def test_user_method_reading_ground_truth_at_import_is_stopped(analytic_dataset,
     ("mymethods.seg:OneLabelConfig", "not a subclass of selfseg.method_api.Method"),
     ("mymethods.seg:Unnamed", "set the class attribute name"),
     ("mymethods.seg:NamedLikeOracle", "is a registered method's"),
+    ("mymethods.spoof:Spoof", "is a registered method's"),  # checked here, not in the method's process
     ("mymethods.broken:X", "broken.py:1"),
     ("mymethods.seg:", "expected a registered name or 'package.module:ClassName'"),
 ])
