@@ -1,18 +1,29 @@
 #!/usr/bin/env bash
-# The benchmark preset (issue 9): generate the data, evaluate every method under the paper's protocol
-# (3 folds), score the 3D segmentations (Table II) and rebuild leaderboards/benchmark.md.
-# Usage: scripts/benchmark.sh [RUN_DIR]   (default runs/benchmark; every step resumes from what is on disk)
-# Wall time of every step goes to RUN_DIR/timings.tsv.
+# A preset's leaderboard (issues 9 and 22): generate the data, evaluate every method under the paper's protocol
+# (3 folds), score the 3D segmentations (Table II) and rebuild leaderboards/<dataset>.md.
+# Usage: scripts/benchmark.sh [RUN_DIR] [PRESET]   (defaults runs/benchmark, benchmark; PRESET is benchmark or
+# calibrated; every step resumes from what is on disk). The methods run as two parallel streams, one per core
+# (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall time of every step goes to
+# RUN_DIR/timings.tsv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/benchmark}
+PRESET=${2:-benchmark}
 BIN=.venv/bin
 DATA=$RUN/data
 DISJOINT=$RUN/data-disjoint
 RESULTS=$RUN/results
+SUP=configs/supervised-$PRESET.yaml
+OURS=configs/ours-$PRESET.yaml
 mkdir -p "$RUN"
-# Objects of the builtin library that the benchmark pool (generate/presets.py BENCHMARK_POOL) does not use.
-OTHERS=box_large,box_small,book,cube,can_soup,chips_tube,jar,ball,egg,pill_tube,flowerpot,hex_box,cheese_wedge,pitcher,drill
+# The disjoint-object training set of baselines B and D and of v1-disjoint: objects the preset's scenes never use.
+case $PRESET in
+  benchmark)  # builtin objects outside generate/presets.py BENCHMARK_POOL
+    OTHERS=(--object-pool box_large,box_small,book,cube,can_soup,chips_tube,jar,ball,egg,pill_tube,flowerpot,hex_box,cheese_wedge,pitcher,drill) ;;
+  calibrated)  # the builtin library without the duck, the one object it shares with the paper library
+    OTHERS=(--library builtin --object-pool box_large,box_medium,box_small,book,cube,can_soda,can_soup,chips_tube,jar,ball,egg,pill_tube,flowerpot,hex_box,cheese_wedge,lamp,dumbbell,mug,bowl,bottle,pitcher,hammer,banana,drill) ;;
+  *) echo "scripts/benchmark.sh: unknown preset '$PRESET' (benchmark or calibrated)" >&2; exit 2 ;;
+esac
 
 step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
   local name=$1; shift
@@ -21,28 +32,37 @@ step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
   printf '%s\t%d\n' "$name" $((SECONDS - t0)) >> "$RUN/timings.tsv"
 }
 
-step generate $BIN/generate_scenes --preset benchmark --out "$DATA" --workers 2 --quiet
-step generate-disjoint $BIN/generate_scenes --preset benchmark --object-pool "$OTHERS" --scenes 6 --seed 1 \
-  --out "$DISJOINT" --workers 2 --quiet
-for m in one-segment fg-components depth-clustering lccp-frame oracle; do
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet
-done
-step supervised $BIN/evaluate --method supervised --data "$DATA" --config configs/supervised-benchmark.yaml \
-  --out "$RESULTS" --quiet
-step v1-disjoint $BIN/evaluate --method v1-disjoint --data "$DATA" --config configs/supervised-benchmark.yaml \
-  --set train_data="$DISJOINT" --out "$RESULTS" --quiet
-# Baselines E and F (default schedules; one training per fold) and B and D (trained once on the
-# disjoint-object set with ground truth, tested zero-shot).
-for m in picie stego; do
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet
-done
-for m in uois-sim sdmaskrcnn-sim; do
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --set train_data="$DISJOINT" --out "$RESULTS" --quiet
-done
-for m in ours-v2 ours ours-v3 ours-v4; do
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --config configs/ours-benchmark.yaml --out "$RESULTS" --quiet
-done
-step evaluate3d $BIN/evaluate3d --data "$DATA" --config configs/ours-benchmark.yaml --out "$RESULTS"
+step generate $BIN/generate_scenes --preset "$PRESET" --out "$DATA" --workers 2 --quiet
+
+evaluate() {  # evaluate NAME ARGS...: one method, 3 folds
+  local m=$1; shift
+  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet "$@"
+}
+
+stream_a() {  # the geometric baselines, the supervised bound, two ablations, then baselines B and D
+  for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
+  evaluate supervised --config "$SUP"
+  for m in ours-v3 ours-v4; do evaluate "$m" --config "$OURS"; done
+  step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
+    --out "$DISJOINT" --workers 2 --quiet
+  evaluate v1-disjoint --config "$SUP" --set train_data="$DISJOINT"
+  # Baselines B and D, trained once on the disjoint-object set with ground truth, tested zero-shot.
+  for m in uois-sim sdmaskrcnn-sim; do evaluate "$m" --set train_data="$DISJOINT"; done
+}
+
+stream_b() {  # ours (its φ1 is cached for V2), Table II, then baselines E and F (default schedules)
+  for m in ours ours-v2; do evaluate "$m" --config "$OURS"; done
+  step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
+  for m in picie stego; do evaluate "$m"; done
+}
+
+stream_a > "$RUN/stream-a.log" 2>&1 &
+A=$!
+stream_b > "$RUN/stream-b.log" 2>&1 &
+B=$!
+failed=0
+wait $A || failed=1
+wait $B || failed=1
+if [ $failed = 1 ]; then echo "scripts/benchmark.sh: a stream failed; see $RUN/stream-{a,b}.log" >&2; exit 1; fi
 
 $BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out leaderboards/
-cat leaderboards/benchmark.md
