@@ -7,7 +7,12 @@
 * ``small``: a quick experiment at 320×240.
 * ``benchmark``: the paper's setting at a size 2 cores can run (issue 9): 12 scenes × 120 frames at
   320×240, 6 objects per scene drawn from 10 (six of them multi-part non-convex), so every object
-  reappears in about 7 scenes; the camera orbits closer (0.38–0.48 m) so objects span 40–90 px.
+  reappears in about 7 scenes; the orbit is configured closer (0.38–0.48 m), then scaled to fit the pile:
+  measured camera distance 0.69–1.19 m from the orbit centre, objects 38–72 px (per-scene medians).
+* ``calibrated``: the paper's over-segmentation statistics (issue 22): 12 scenes × 120 frames at 320×240,
+  8 objects per scene from the 13 chunky multi-part toys of the ``paper`` library, dropped apart
+  (``spread``, .25 m) so that objects rarely touch (0.54 touching pairs per scene on dev seeds 7 and 11);
+  camera 0.90–1.16 m from the orbit centre, objects 35–44 px (seed 7).
 * ``paper-synthetic``: as in the paper: 36 videos × 800 frames, 12 objects per scene drawn from
   a fixed 17-object subset, 640×480. ``frame_step`` n renders only every n-th frame.
 """
