@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := runs/demo
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install leaderboards clean
 
 install: $(STAMP)
 
@@ -22,6 +22,12 @@ $(STAMP): pyproject.toml scripts/install_system_deps.sh
 
 demo: $(STAMP)
 	bash scripts/demo.sh $(DEMO)
+
+# The committed leaderboards/ from a finished demo's results (RESULTS=... for another run's, e.g.
+# runs/calibrated/results): `make demo` itself writes only under runs/demo.
+RESULTS ?= $(DEMO)/results
+leaderboards: $(STAMP)
+	$(PY) -m selfseg.leaderboards.build --results $(RESULTS) --out leaderboards/
 
 # The suite runs as on a fresh machine: an empty HOME (no caches, no matplotlib font cache), MPLCONFIGDIR unset.
 test: $(STAMP)

@@ -5,8 +5,10 @@
 Reads ``RESULTS/scores/<dataset>/<name>/fold<k>.json`` (see :mod:`selfseg.eval.protocol`) and
 writes, per dataset, ``<dataset>.md`` (only the part between the GENERATED markers is replaced;
 text around it is kept), ``<dataset>_iou.png`` (IoU per method, mean ± std over folds) and
-``<dataset>_montage.png`` (RGB, ground truth and each method's prediction on a few test frames;
-segments coloured like the ground-truth object they are matched to, unmatched ones grey-blue).
+``<dataset>_montage.png`` (a column per test frame of a few test videos: RGB, ground truth, then every 2-D
+run's prediction in a row of its own; segments coloured like the ground-truth object they are matched to,
+unmatched ones grey-blue). Runs that scored fewer folds than the dataset's most are marked in the chart and
+the montage (``name (fold 0)``).
 Output depends only on the result files and the predictions, so a rebuild is byte-identical.
 
 Rows: Table I lists every 2-D run except ablation variants; Table III lists runs named ``ours``
@@ -36,7 +38,6 @@ from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_tex
 BEGIN = "<!-- BEGIN GENERATED (selfseg.leaderboards.build; edits inside are overwritten) -->"
 END = "<!-- END GENERATED -->"
 MONTAGE_FRAMES = 3
-MONTAGE_METHODS = 6
 MONTAGE_TILE_W = 240
 
 # The paper's reference numbers (Prec, Recall, IoU) for (real, synthetic), from shared/paper.md.
@@ -160,19 +161,34 @@ def runs_table(groups: dict) -> list[str]:
     return lines
 
 
+def _fold_label(groups: dict, task: str, name: str) -> str:
+    """``name``, or ``name (fold 0)`` / ``name (folds 0,1)`` when the run scored fewer folds than the dataset's
+    most complete 2-D or 3-D run of the same task."""
+    most = max(len(recs) for (t, _), recs in groups.items() if t == task)
+    folds = [r["fold"] for r in groups[task, name]]
+    if len(folds) >= most:
+        return name
+    return f"{name} ({'fold' if len(folds) == 1 else 'folds'} {','.join(str(f) for f in folds)})"
+
+
 def bar_chart(groups: dict, title: str) -> bytes:
-    """PNG bytes: mean IoU per 2-D run with ± std error bars."""
+    """PNG bytes: mean IoU per 2-D run with ± std error bars; runs with fewer folds hatched and labelled."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = _ranked(groups, "2d", lambda n: True, METRIC_KEYS)[::-1]
-    fig, ax = plt.subplots(figsize=(6, 0.45 * max(len(rows), 1) + 1.2), dpi=100)
-    ax.barh([r[0] for r in rows], [r[1]["mean"]["IoU"] for r in rows],
-            xerr=[np.nan_to_num(r[1]["std"]["IoU"]) for r in rows], color="#4c72b0", capsize=3)
+    labels = [_fold_label(groups, "2d", r[0]) for r in rows]
+    fig, ax = plt.subplots(figsize=(6.5, 0.45 * max(len(rows), 1) + 1.2), dpi=100)
+    bars = ax.barh(labels, [r[1]["mean"]["IoU"] for r in rows],
+                   xerr=[np.nan_to_num(r[1]["std"]["IoU"]) for r in rows], color="#4c72b0", capsize=3)
+    for bar, label, (name, _) in zip(bars, labels, rows):
+        if label != name:
+            bar.set_hatch("//")
+            bar.set_facecolor("#a8b8d8")
     ax.set_xlim(0, 1)
-    ax.set_xlabel("IoU (mean ± std over folds)")
+    ax.set_xlabel("IoU (mean ± std over folds; hatched: fewer folds)")
     ax.set_title(title)
     fig.tight_layout()
     buf = io.BytesIO()
@@ -210,7 +226,7 @@ def _tile(img: np.ndarray, label: str) -> np.ndarray:
 
     h = int(round(img.shape[0] * MONTAGE_TILE_W / img.shape[1]))
     t = cv2.resize(img, (MONTAGE_TILE_W, h), interpolation=cv2.INTER_NEAREST)
-    cv2.putText(t, label[:28], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(t, label[:34], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
     return t
 
 
@@ -220,11 +236,11 @@ def _prediction_dir(results: Path, rec: dict) -> Path:
 
 
 def montage(groups: dict, results: Path) -> bytes | None:
-    """PNG bytes of RGB | GT | predictions for the first test frame of up to 3 test videos, or None
-    if the dataset folder recorded in the results is not available here."""
+    """PNG bytes: a column per test video (its first test frame, up to 3 videos), rows RGB, ground truth and
+    every 2-D run's prediction; None if the dataset folder recorded in the results is not available here."""
     import cv2
 
-    runs = [(name, recs) for (task, name), recs in groups.items() if task == "2d"][:MONTAGE_METHODS]
+    runs = [(name, groups["2d", name]) for name, _ in _ranked(groups, "2d", lambda n: True, METRIC_KEYS)]
     if not runs:
         return None
     try:
@@ -232,7 +248,7 @@ def montage(groups: dict, results: Path) -> bytes | None:
     except DatasetError:
         return None
     videos = sorted({v for _, recs in runs for r in recs for v in r["per_video"]})[:MONTAGE_FRAMES]
-    rows = []
+    columns = []
     for vid in videos:
         labeled = dataset.labeled(vid)
         fid = labeled.frame_ids[0]  # frame 0 of a test video is always a test frame (stride from 0)
@@ -240,13 +256,14 @@ def montage(groups: dict, results: Path) -> bytes | None:
         pal = _palette(max(int(gt.max()), 1))
         tiles = [_tile(labeled.rgb(fid), f"{vid}/{fid:06d}"), _tile(_colour_gt(gt, pal), "ground truth")]
         for name, recs in runs:
+            label = _fold_label(groups, "2d", name)
             path = _prediction_dir(results, recs[0]) / f"{vid}/{fid:06d}.png"
             if path.is_file():
-                tiles.append(_tile(_colour_pred(read_inst(path), gt, pal), name))
-            else:
-                tiles.append(_tile(np.full(gt.shape + (3,), 40, np.uint8), f"{name}: missing"))
-        rows.append(np.concatenate(tiles, 1))
-    img = np.concatenate(rows, 0)
+                tiles.append(_tile(_colour_pred(read_inst(path), gt, pal), label))
+            else:  # not a test frame of this run's folds
+                tiles.append(_tile(np.full(gt.shape + (3,), 40, np.uint8), f"{label}: not run"))
+        columns.append(np.concatenate(tiles, 0))
+    img = np.concatenate(columns, 1)
     ok, buf = cv2.imencode(".png", img[:, :, ::-1])
     return buf.tobytes() if ok else None
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The demo on the tiny preset: generate data, evaluate every method under the paper's protocol,
-# score the 3D segmentations (Table II), rebuild the leaderboards and print them.
+# score the 3D segmentations (Table II), build the leaderboard under RUN_DIR/leaderboards and print it.
 # Usage: scripts/demo.sh [RUN_DIR]   (default runs/demo; every step resumes from what is on disk)
+# Everything goes under RUN_DIR: the committed leaderboards/ are rebuilt only by `make leaderboards`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/demo}
@@ -31,6 +32,7 @@ for m in ours ours-v2 ours-v3 ours-v4; do
 done
 $BIN/evaluate3d --data "$DATA" --config configs/ours-tiny.yaml --out "$RESULTS"
 
-$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out leaderboards/
+BOARDS=$RUN/leaderboards
+$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out "$BOARDS"
 name=$($BIN/python -c "import sys; from selfseg.dataset import Dataset; print(Dataset(sys.argv[1]).name)" "$DATA")
-cat "leaderboards/$name.md"
+cat "$BOARDS/$name.md"

@@ -1,6 +1,8 @@
 """Leaderboard rebuilds: deterministic, idempotent, and they keep text outside the generated block."""
 import itertools
 
+import numpy as np
+
 import pytest
 
 from selfseg.eval.cli import main as evaluate
@@ -86,3 +88,28 @@ def test_paper_reference_rows_agree_across_tables():
 def test_missing_results_folder(tmp_path, capsys):
     assert main(["--results", str(tmp_path / "none"), "--out", str(tmp_path)]) == 2
     assert str(tmp_path / "none") in capsys.readouterr().err
+
+
+def test_montage_shows_every_run_and_marks_fewer_folds(results, analytic_dataset, tmp_path):
+    """Every 2-D run gets a row of the montage (rows: RGB, ground truth, then the runs), and a run that scored
+    fewer folds than the others is labelled with its folds in the chart and the montage."""
+    import shutil
+
+    import cv2
+
+    from selfseg.leaderboards.build import MONTAGE_TILE_W, _fold_label, load_results, montage
+
+    out = tmp_path / "results"
+    shutil.copytree(results, out)
+    assert evaluate(["--method", "depth-clustering", "--data", str(analytic_dataset), "--frame-stride", "3",
+                     "--folds", "0", "--out", str(out), "--quiet"]) == 0
+    [groups] = load_results(out).values()
+    assert _fold_label(groups, "2d", "depth-clustering") == "depth-clustering (fold 0)"
+    assert _fold_label(groups, "2d", "oracle") == "oracle"
+    n_runs = sum(task == "2d" for task, _ in groups)
+    assert n_runs == 3
+    img = cv2.imdecode(np.frombuffer(montage(groups, out), np.uint8), cv2.IMREAD_COLOR)
+    n_videos = len({v for recs in groups.values() for r in recs for v in r["per_video"]})
+    assert img.shape[1] == MONTAGE_TILE_W * min(n_videos, 3)
+    tile_h = img.shape[0] / (2 + n_runs)
+    assert tile_h == int(tile_h)
