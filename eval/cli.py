@@ -2,7 +2,7 @@
 
     evaluate --method NAME|package.module:ClassName --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
              [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
-             [--method-needs-ground-truth] [--trust-method]
+             [--method-needs-ground-truth] [--trust-method] [--replace]
              [--out results/] [--list-methods] [--executor local|ray] [--ray-address auto|HOST:PORT]
 
 Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table. The method's code
@@ -16,13 +16,15 @@ import argparse
 import concurrent.futures as cf
 import errno
 import os
+import shutil
 import sys
 from pathlib import Path
 
 from selfseg.config import ConfigError
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt, summarize_folds
-from selfseg.eval.protocol import EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, run_fold
+from selfseg.eval.protocol import (EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, retire_run,
+                                   run_conflict, run_fold)
 from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
 from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, check_shared_folder, \
     executor_config, make_executor
@@ -66,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="foreground given to methods: gt (the paper's protocol) or plane (estimated from depth by "
                    "removing the support plane; scored on the GT foreground; run name gets '@fg-plane')")
     p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
+    p.add_argument("--replace", action="store_true",
+                   help="replace a run of the same name made with another config or options (its folds and "
+                   "predictions go to OUT/replaced/ and are deleted once this run finished); without it, such a "
+                   "run is refused")
     p.add_argument("--list-methods", action="store_true", help="list registered methods and exit")
     add_executor_arguments(p, "folds (one task per fold: the method's process, its scoring and its files)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -157,6 +163,10 @@ def run(args: argparse.Namespace) -> int:
         raise DatasetError(f"{dataset.root}: has no ground truth (no scene_gt.json / mask_inst/), so evaluate cannot "
                            "score it; use train and segment for unlabeled recordings")
     where = executor_config(args, args.config)
+    conflict = run_conflict(args.out, dataset, ref.name, config, options)
+    if conflict is not None and not args.replace:
+        raise ConfigError(f"{conflict}; name this one with --name, or give --replace to replace that run")
+    replaced = retire_run(args.out, dataset, options.name or ref.name) if conflict is not None else None
     records = {}
     for k in options.folds:  # a fold finished by an earlier run with the same keys is reused (resume)
         records[k] = finished_fold(ref, config, dataset, k, args.out, options)
@@ -167,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
         records.update(run_folds_as_tasks(where, ref, config, dataset, todo, args.out, options, args.quiet))
     else:  # plain local runs: one fold after the other, from this process
         records.update({k: run_fold(ref, config, dataset, k, args.out, options, progress=not args.quiet) for k in todo})
+    if replaced is not None:
+        shutil.rmtree(replaced, ignore_errors=True)
     print(format_table(options.name or ref.name, [records[k] for k in options.folds]))
     print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or ref.name)}")
     return 0

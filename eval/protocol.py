@@ -17,10 +17,13 @@ process has exited, checks them, scores them and files them. Output layout under
     work/_views/<content hash>-<poses>/<folder>/  the unlabeled copy of the dataset that methods see
     work/_stages/<content hash>-<poses>/          registered methods' per-video stage caches (``Method.stage_root``)
     rejected/<dataset>/<name>/fold<k>.json        a fold whose method reached for ground truth (not scored)
+    replaced/<dataset>/<name>.<pid>/              ``evaluate --replace``: the old run, until the new one finished
 
 ``<name>`` is the method name unless ``--name`` gives a variant name; ``<dataset>`` is the dataset's name,
 or ``<name>-<content hash>`` when results of another dataset of that name are already there
-(:func:`results_key`), so two datasets never mix. Each video is a test
+(:func:`results_key`), so two datasets never mix, and a run name holds one run: ``evaluate`` refuses a run
+whose method, config or options differ from those already filed under its name (:func:`run_conflict`)
+unless ``--replace`` is given. Each video is a test
 video in exactly one fold, so ``predictions/<name>/<dataset>/`` is a valid folder for the
 ``external`` method (re-scoring never re-runs a method).
 """
@@ -61,6 +64,7 @@ STAGE_ROOT_DIR = "work/_stages/{content_hash}-{poses}"  # registered methods' st
 METHOD_OUTPUT_DIR = "predictions/{name}/.{dataset}.fold{fold}.method"  # where the method's process writes predictions
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
+REPLACED_DIR = "replaced/{dataset}/{name}.{pid}"  # evaluate --replace: the old run, deleted once the new one finished
 VERSIONED_PACKAGES = ("selfseg", "numpy", "scipy", "torch", "open3d-cpu", "opencv-python-headless", "trimesh")
 
 
@@ -344,6 +348,45 @@ def _resume_key(record: dict) -> dict:
     options = {k: v for k, v in record["options"].items() if k != "folds"}
     return {"method": record["method"], "config_hash": record["config_hash"], "options": options,
             "dataset": record["dataset"]["content_hash"], "commit": record["git"]["commit"]}
+
+
+def _differences(old, new, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two JSON-like dicts, as ``key old → new``."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [d for k in sorted(set(old) | set(new), key=str)
+                for d in _differences(old.get(k), new.get(k), f"{prefix}{k}.")]
+    return [] if old == new else [f"{prefix[:-1]} {old!r} → {new!r}"]
+
+
+def run_conflict(out: Path, dataset: Dataset, method: str, config, options: EvalOptions) -> str | None:
+    """Why a run with these settings would mix with the run already filed under its name in ``out`` (another
+    method, config or protocol options: each fold of a run must share them), or None. The dataset is not
+    compared: another dataset's content is filed under a key of its own (:func:`results_key`)."""
+    name = options.name or method
+    new = {"method": method, "config": to_dict(config),
+           "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "folds"}}
+    for path in sorted((Path(out) / "scores" / results_key(out, dataset) / name).glob("fold*.json")):
+        rec = read_json(path)
+        old = {"method": rec.get("method"), "config": rec.get("config"),
+               "options": {k: v for k, v in rec.get("options", {}).items() if k != "folds"}}
+        diff = _differences(old, new)
+        if diff:
+            more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
+            return f"{path}: run {name!r} was made with other settings ({'; '.join(diff[:3])}{more})"
+    return None
+
+
+def retire_run(out: Path, dataset: Dataset, name: str) -> Path:
+    """Move run ``name``'s scores and predictions for ``dataset`` out of the way (renames, so no fold of the old
+    run stays beside the new one's); returns the folder they went to, to delete once the new run finished."""
+    fmt = {"dataset": results_key(out, dataset), "name": name, "fold": 0}
+    trash = Path(out) / REPLACED_DIR.format(**fmt, pid=os.getpid())
+    for kind, folder in (("scores", Path(out) / Path(SCORES_JSON.format(**fmt)).parent),
+                         ("predictions", Path(out) / PREDICTIONS_DIR.format(**fmt))):
+        if folder.exists():
+            trash.mkdir(parents=True, exist_ok=True)
+            os.replace(folder, trash / kind)
+    return trash
 
 
 def finished_fold(method_cls: MethodRef | type[Method], config, dataset: Dataset, fold: int, out: Path,

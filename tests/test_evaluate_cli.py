@@ -94,3 +94,33 @@ def test_cheating_method_is_stopped(analytic_dataset, tmp_path, capsys, monkeypa
     code, _, err = run_cli(capsys, "--method", "cheat-open", "--data", analytic_dataset, "--out", tmp_path, "--quiet")
     assert code == 2 and "tried to read ground truth" in err and "mask_inst" in err
     assert not (tmp_path / "scores").exists()
+
+
+def test_rerun_with_other_settings_refuses_or_replaces(analytic_dataset, tmp_path, capsys):
+    """A run name holds one run: the same name with another config is refused in one line naming the difference
+    (nothing changes), and with --replace the old folds and predictions are all replaced, none left beside."""
+    import json
+
+    base = ["--method", "depth-clustering", "--data", analytic_dataset, "--frame-stride", "3", "--out", tmp_path,
+            "--quiet"]
+    scores = tmp_path / "scores/analytic/depth-clustering"
+    preds = tmp_path / "predictions/depth-clustering/analytic"
+    assert run_cli(capsys, *base, "--folds", "0,1", "--set", "distance_m=0.01")[0] == 0
+    before = {p.name: p.read_bytes() for p in scores.iterdir()}
+    frames_before = sorted(p.relative_to(preds) for p in preds.rglob("*.png"))
+
+    code, _, err = run_cli(capsys, *base, "--folds", "0", "--set", "distance_m=0.03")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "distance_m 0.01 → 0.03" in err and str(scores / "fold0.json") in err and "--replace" in err
+    assert {p.name: p.read_bytes() for p in scores.iterdir()} == before
+    # the same settings again are no conflict: the finished folds are reused
+    assert run_cli(capsys, *base, "--folds", "0,1", "--set", "distance_m=0.01")[0] == 0
+    assert {p.name: p.read_bytes() for p in scores.iterdir()} == before
+
+    code, _, err = run_cli(capsys, *base, "--folds", "2", "--set", "distance_m=0.03", "--replace")
+    assert code == 0, err
+    assert sorted(p.name for p in scores.glob("*.json")) == ["fold2.json"]  # folds 0 and 1 of the old run are gone
+    assert json.loads((scores / "fold2.json").read_text())["config"]["distance_m"] == 0.03
+    frames_after = sorted(p.relative_to(preds) for p in preds.rglob("*.png"))
+    assert frames_after and set(frames_after).isdisjoint(frames_before)  # only fold 2's video remains
+    assert not any((tmp_path / "replaced").rglob("*.json"))
