@@ -26,6 +26,7 @@ from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_
                              SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
+from selfseg.generate.determinism import reexec_pinned
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
@@ -285,6 +286,8 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the command: the same bytes on every x86-64 machine (selfseg.generate.determinism)
+        reexec_pinned("selfseg.generate.cli")
     args = build_parser().parse_args(argv)
     t_start = time.perf_counter()
     try:
