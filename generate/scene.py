@@ -140,6 +140,7 @@ def generate_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], 
             writer = VideoWriter(tmp)
             for fid in tqdm(cfg.frame_ids, desc=f"scene {index:06d} frames", unit="frame", leave=False,
                             disable=not progress):
+                bscene.raise_if_interrupted()  # Ctrl-C lands between frames, not after the scene
                 T_wc = cams[fid]
                 bscene.set_camera(T_wc)
                 t0 = time.perf_counter()
