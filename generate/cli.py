@@ -113,18 +113,51 @@ def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
     return sorted(foreign)
 
 
+# a video folder's entries in the dataset format: rgb, depth, mask_inst and the three JSON records
+VIDEO_ENTRIES = {Path(t.format(video_id="0", frame_id=0)).parts[2]: t for t in
+                 (RGB, DEPTH, MASK_INST, SCENE_CAMERA, SCENE_GT, SCENE_INFO)}
+FRAME_FOLDERS = sorted(e for e, t in VIDEO_ENTRIES.items() if "{frame_id" in t)
+
+
+def _video_folders(out: Path) -> list[Path]:
+    """The six-digit video folders of ``out``, sorted."""
+    videos = out / VIDEOS_DIR
+    return sorted(p for p in videos.iterdir() if re.fullmatch(r"\d{6}", p.name)) if videos.is_dir() else []
+
+
+def _user_files_in_videos(out: Path) -> list[str]:
+    """Files inside video folders that the dataset format does not own (``out``-relative): entries besides
+    :data:`VIDEO_ENTRIES`, and anything in rgb/, depth/, mask_inst/ but six-digit PNG frames."""
+    found = []
+    for v in _video_folders(out):
+        for p in sorted(v.iterdir()):
+            if p.name not in VIDEO_ENTRIES:
+                found.append(p)
+            elif p.name in FRAME_FOLDERS and p.is_dir():
+                found += [q for q in sorted(p.iterdir()) if not re.fullmatch(r"\d{6}\.png", q.name)]
+    return [str(p.relative_to(out)) for p in found]
+
+
+def scene_missing(video_dir: Path, cfg: GenerateConfig) -> str | None:
+    """What a finished scene of ``cfg`` lacks in ``video_dir`` (its first missing file), None if complete."""
+    vid = video_dir.name
+    need = [t.format(video_id=vid, frame_id=f) for t in VIDEO_ENTRIES.values() if "{frame_id" in t
+            for f in cfg.frame_ids]
+    need += [t.format(video_id=vid) for t in VIDEO_ENTRIES.values() if "{frame_id" not in t]
+    root = video_dir.parent.parent
+    return next((rel for rel in need if not (root / rel).is_file()), None)
+
+
 def remove_dataset(out: Path) -> list[str]:
     """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, models/obj_*.ply
     and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON records,
     plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
-    video_entries = {Path(t.format(video_id="0", frame_id=0)).parts[2] for t in
-                     (RGB, DEPTH, MASK_INST, SCENE_CAMERA, SCENE_GT, SCENE_INFO)}
     owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MODELS_INFO]
     owned += sorted((out / MODELS_DIR).glob("obj_[0-9][0-9][0-9][0-9][0-9][0-9].ply"))
     videos = out / VIDEOS_DIR
     owned += sorted(videos.glob(".*.partial")) if videos.is_dir() else []
-    video_dirs = sorted(p for p in videos.iterdir() if re.fullmatch(r"\d{6}", p.name)) if videos.is_dir() else []
-    owned += [v / e for v in video_dirs for e in sorted(video_entries)]
+    video_dirs = _video_folders(out)
+    owned += [v / e for v in video_dirs for e in sorted(VIDEO_ENTRIES)]
     removed = []
     for path in owned:
         if path.is_dir() and not path.is_symlink():
@@ -155,6 +188,11 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
         if stored is None:
             raise GenerateError(f"{out}: not a selfseg dataset (no {DATASET_INFO}); refusing to delete it even with "
                                 "--overwrite. Choose another --out or empty the folder yourself")
+        inside = _user_files_in_videos(out)
+        if inside:  # emptying that video would leave a folder that looks finished but holds no scene
+            raise GenerateError(f"{out / inside[0]}: a file generate_scenes did not write is inside a video folder "
+                                f"({len(inside)} such files); --overwrite would empty that video. Move them out of "
+                                f"{out / VIDEOS_DIR} first")
         removed = remove_dataset(out)
         kept = sorted(p.name for p in out.iterdir())
         print(f"generate_scenes: --overwrite removed {len(removed)} dataset entries from {out} "
@@ -173,6 +211,12 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
     if foreign:
         raise GenerateError(f"{out}: contains files this dataset did not write ({', '.join(foreign[:5])}); "
                             "remove them or choose another --out")
+    for i in range(cfg.scenes):  # a scene folder counts as done only when it is complete
+        folder = out / VIDEO_DIR.format(video_id=video_id_str(i))
+        missing = scene_missing(folder, cfg) if folder.is_dir() else None
+        if missing is not None:
+            raise GenerateError(f"{out / missing}: missing, so {folder} is not a complete scene; remove that folder "
+                                "(it is regenerated) or use --overwrite")
     for stale in (out / VIDEOS_DIR).glob(".*.partial"):  # left by an interrupted scene
         shutil.rmtree(stale)
 

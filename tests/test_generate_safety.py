@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -11,7 +12,7 @@ import time
 import pytest
 import trimesh
 
-from selfseg.generate.cli import PROGRESS_FILE, main, prepare_output
+from selfseg.generate.cli import PROGRESS_FILE, GenerateError, main, prepare_output
 from selfseg.generate.presets import preset_config
 
 
@@ -21,7 +22,7 @@ def test_overwrite_keeps_user_files(tmp_path, capsys):
              "videos/000000/rgb/000000.png", "videos/000000/depth/000000.png", "videos/000000/mask_inst/000000.png",
              "videos/000000/scene_camera.json", "videos/000000/scene_gt.json", "videos/000000/scene_info.json",
              "videos/.000001.x.partial/rgb/000000.png"]
-    mine = ["notes.txt", "models/my_mesh.obj", "videos/000000/my_labels.csv", "videos/extra/keep.png"]
+    mine = ["notes.txt", "models/my_mesh.obj", "videos/extra/keep.png"]
     for rel in owned + mine:
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         (out / rel).write_text("x")
@@ -32,6 +33,49 @@ def test_overwrite_keeps_user_files(tmp_path, capsys):
     assert not any((out / rel).exists() for rel in owned)
     assert not (out / "videos/.000001.x.partial").exists()
     assert "removed 11 dataset entries" in err and "notes.txt" in err and len(err.strip().splitlines()) == 1
+
+
+def _fake_dataset(out, cfg, files) -> None:
+    """A dataset record of ``cfg`` (as generate_scenes writes it) and placeholder ``files``."""
+    from selfseg.config import to_dict
+    from selfseg.generate.presets import GENERATOR_VERSION
+
+    for rel in files:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_text("x")
+    (out / "dataset_info.json").write_text(json.dumps({"config": to_dict(cfg), "generator_version": GENERATOR_VERSION}))
+
+
+@pytest.mark.parametrize("user_file", ["videos/000000/my_labels.csv", "videos/000001/depth/notes.txt"])
+def test_overwrite_refuses_to_empty_a_video_holding_a_user_file(tmp_path, capsys, user_file):
+    """Emptying such a video left a folder that counted as a finished scene: 2 of 3 videos, exit 0."""
+    out = tmp_path / "data"
+    frames = [f"videos/{v:06d}/{sub}/000000.png" for v in range(2) for sub in ("rgb", "depth", "mask_inst")]
+    _fake_dataset(out, preset_config("tiny", scenes=3), frames + [user_file])
+    before = sorted(p for p in out.rglob("*") if p.is_file())
+    assert main(["--preset", "tiny", "--scenes", "3", "--out", str(out), "--overwrite", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(out / user_file) in err and "--overwrite" in err
+    assert sorted(p for p in out.rglob("*") if p.is_file()) == before  # nothing deleted
+
+
+def test_an_incomplete_video_is_not_counted_as_done(tmp_path, capsys):
+    out = tmp_path / "data"
+    cfg = preset_config("tiny", scenes=2, frames=4)
+    complete = [t.format(frame_id=f) for t in ("videos/000000/rgb/{frame_id:06d}.png",
+                                               "videos/000000/depth/{frame_id:06d}.png",
+                                               "videos/000000/mask_inst/{frame_id:06d}.png") for f in cfg.frame_ids]
+    complete += [f"videos/000000/{n}.json" for n in ("scene_camera", "scene_gt", "scene_info")]
+    _fake_dataset(out, cfg, complete)
+    prepare_output(out, cfg, overwrite=False)  # scene 0 is complete: resumable
+    (out / "videos/000000/depth/000002.png").unlink()
+    (out / "videos/000001/rgb").mkdir(parents=True)
+    (out / "videos/000001/rgb/000000.png").write_text("x")
+    for scene in ("000000", "000001"):
+        with pytest.raises(GenerateError, match="not a complete scene") as e:
+            prepare_output(out, cfg, overwrite=False)
+        assert f"{out}/videos/{scene}/" in str(e.value)
+        shutil.rmtree(out / "videos" / scene)
 
 
 def test_negative_seed_is_one_line(tmp_path, capsys):
