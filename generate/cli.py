@@ -30,6 +30,7 @@ from selfseg.generate.determinism import reexec_pinned
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
+from selfseg.manifest import MANIFEST, verify, write_manifest
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
 EXIT_BAD_INPUT = 2
@@ -49,7 +50,7 @@ def _resolution(text: str) -> tuple[int, int]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="generate_scenes", description=__doc__.split("\n")[0])
     p.add_argument("--preset", choices=list(PRESETS), default="tiny", help="base configuration (default: tiny)")
-    p.add_argument("--out", required=True, type=Path, help="dataset folder to create or resume")
+    p.add_argument("--out", type=Path, help="dataset folder to create or resume (required unless --verify)")
     p.add_argument("--scenes", type=int, help="number of scenes (videos)")
     p.add_argument("--frames", type=int, help="frames per full-rate video")
     p.add_argument("--frame-step", type=int, help="render only every n-th frame (frame ids keep the full-rate index)")
@@ -76,7 +77,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=Path(os.environ.get("SELFSEG_CACHE", Path.home() / ".cache" / "selfseg")),
                    help="cache for collision decompositions (default ~/.cache/selfseg or $SELFSEG_CACHE)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--verify", type=Path, metavar="DIR", help="check every byte of the dataset DIR against its "
+                   "manifest.json and print its manifest hash (exit 1 if it differs); generates nothing")
     return p
+
+
+def verify_dataset(root: Path) -> int:
+    """``--verify DIR``: one line; 0 if every file matches the manifest, 1 if not, 2 without a manifest."""
+    try:
+        digest, problems = verify(root, full=True)
+    except (FileNotFoundError, FileFormatError) as e:
+        print(f"generate_scenes: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if problems:
+        more = f" (and {len(problems) - 1} more differences)" if len(problems) > 1 else ""
+        print(f"generate_scenes: {root / problems[0]}{more}; {root} is not the data of manifest {digest}",
+              file=sys.stderr)
+        return 1
+    print(f"{root}: every file matches manifest {digest}")
+    return 0
 
 
 def config_from_args(args: argparse.Namespace) -> GenerateConfig:
@@ -105,7 +124,8 @@ def _stored_config(out: Path) -> dict | None:
 def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
     """Entries of ``out`` that this dataset would not have written."""
     scene_names = {video_id_str(i) for i in range(cfg.scenes)}
-    foreign = [p.name for p in out.iterdir() if p.name not in (DATASET_INFO, PROGRESS_FILE, MODELS_DIR, VIDEOS_DIR)]
+    foreign = [p.name for p in out.iterdir() if p.name not in (DATASET_INFO, PROGRESS_FILE, MANIFEST, MODELS_DIR,
+                                                                VIDEOS_DIR)]
     videos = out / VIDEOS_DIR
     if videos.is_dir():
         foreign += [f"{VIDEOS_DIR}/{p.name}" for p in videos.iterdir()
@@ -149,10 +169,10 @@ def scene_missing(video_dir: Path, cfg: GenerateConfig) -> str | None:
 
 
 def remove_dataset(out: Path) -> list[str]:
-    """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, models/obj_*.ply
-    and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON records,
-    plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
-    owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MODELS_INFO]
+    """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, manifest.json,
+    models/obj_*.ply and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON
+    records, plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
+    owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MANIFEST, out / MODELS_INFO]
     owned += sorted((out / MODELS_DIR).glob("obj_[0-9][0-9][0-9][0-9][0-9][0-9].ply"))
     videos = out / VIDEOS_DIR
     owned += sorted(videos.glob(".*.partial")) if videos.is_dir() else []
@@ -323,9 +343,11 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
         "config": cfg_dict, "seed": cfg.seed, "frame_ids": cfg.frame_ids,
         "objects": [{"obj_id": i + 1, "name": o.name, "source": o.source, "nonconvex": bool(o.nonconvex)}
                     for i, o in enumerate(library)]})
+    digest = write_manifest(out)
     (out / PROGRESS_FILE).unlink()
     totals["models"] = time.perf_counter() - t0
     print(_summary(totals, time.perf_counter() - t_start, len(todo) * len(cfg.frame_ids), len(todo), skipped, out))
+    print(f"generate_scenes: {out}: manifest hash {digest}")
     return 0
 
 
@@ -333,6 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the command: the same bytes on every x86-64 machine (selfseg.generate.determinism)
         reexec_pinned("selfseg.generate.cli")
     args = build_parser().parse_args(argv)
+    if args.verify is not None:
+        return verify_dataset(args.verify)
+    if args.out is None:
+        build_parser().error("--out is required (or --verify DIR)")
     t_start = time.perf_counter()
     try:
         executor = open_executor(args)

@@ -43,6 +43,7 @@ from tqdm import tqdm
 from selfseg.dataset import (DATASET_INFO, VIDEO_DIR, Dataset, DatasetError, VideoWriter, read_depth_m, read_inst,
                              read_rgb, validate_K, video_id_str, write_dataset_info)
 from selfseg.fileio import FileFormatError, atomic_dir, read_json
+from selfseg.manifest import write_manifest
 
 IMPORTER_VERSION = 1
 FORMATS = ("ycb-video", "tum", "folder")
@@ -382,7 +383,8 @@ def run(args: argparse.Namespace) -> int:
         import_video(video, vdir, args.frame_step, args.resolution, size, progress=not args.quiet)
     ds = Dataset(out)
     print(f"{ds}: {len(videos) - done} imported, {done} already present; "
-          f"{'labelled' if ds.has_labels() else 'unlabeled (train/segment only; evaluate needs labels)'}")
+          f"{'labelled' if ds.has_labels() else 'unlabeled (train/segment only; evaluate needs labels)'}; "
+          f"manifest hash {write_manifest(out)}")
     return 0
 
 

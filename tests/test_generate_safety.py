@@ -18,7 +18,7 @@ from selfseg.generate.presets import preset_config
 
 def test_overwrite_keeps_user_files(tmp_path, capsys):
     out = tmp_path / "data"
-    owned = ["dataset_info.json", PROGRESS_FILE, "models/models_info.json", "models/obj_000001.ply",
+    owned = ["dataset_info.json", PROGRESS_FILE, "manifest.json", "models/models_info.json", "models/obj_000001.ply",
              "videos/000000/rgb/000000.png", "videos/000000/depth/000000.png", "videos/000000/mask_inst/000000.png",
              "videos/000000/scene_camera.json", "videos/000000/scene_gt.json", "videos/000000/scene_info.json",
              "videos/.000001.x.partial/rgb/000000.png"]
@@ -32,7 +32,7 @@ def test_overwrite_keeps_user_files(tmp_path, capsys):
     assert all((out / rel).read_text() == "x" for rel in mine)
     assert not any((out / rel).exists() for rel in owned)
     assert not (out / "videos/.000001.x.partial").exists()
-    assert "removed 11 dataset entries" in err and "notes.txt" in err and len(err.strip().splitlines()) == 1
+    assert "removed 12 dataset entries" in err and "notes.txt" in err and len(err.strip().splitlines()) == 1
 
 
 def _fake_dataset(out, cfg, files) -> None:

@@ -10,6 +10,7 @@ import pytest
 
 from selfseg.dataset import Dataset, depth_to_png_units
 from selfseg.importers import associate, main, scale_K
+from selfseg.manifest import verify
 
 TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
 
@@ -58,8 +59,10 @@ def test_folder_round_trip_is_exact_and_resumes(tmp_path, capsys):
     mtime = kept.stat().st_mtime_ns
     shutil.rmtree(out / "videos" / "000001")
     assert main(["--format", "folder", str(src), "--out", str(out), "--depth-scale", "0.1", "--quiet"]) == 0
-    assert "1 imported, 1 already present" in capsys.readouterr().out
+    stdout = capsys.readouterr().out
+    assert "1 imported, 1 already present" in stdout
     assert kept.stat().st_mtime_ns == mtime and len(Dataset(out).video_ids) == 2
+    assert verify(out) == (Dataset(out).content_hash(), []) and f"manifest hash {verify(out)[0]}" in stdout
     # other options into the same folder: refused
     assert main(["--format", "folder", str(src), "--out", str(out), "--depth-scale", "1", "--quiet"]) == 2
 
