@@ -37,17 +37,19 @@ def dataset_files(root: str | os.PathLike) -> list[str]:
     return sorted(found)
 
 
-def scan(root: str | os.PathLike, full: bool = False) -> dict[str, list]:
-    """``{path: [size, sha256]}`` of the dataset's files now; unless ``full``, digests of files whose size,
-    mtime and inode are unchanged since the last scan are taken from the stat cache."""
+def scan(root: str | os.PathLike, full: bool = False, only: list[str] | None = None) -> dict[str, list]:
+    """``{path: [size, sha256]}`` of the dataset's files now (or of the paths ``only``); unless ``full``,
+    digests of files whose size, mtime and inode are unchanged since the last scan come from the stat cache."""
     root = Path(root)
     cache_path = _stat_cache_path(root)
     try:
-        cache = {} if full else read_json(cache_path)
+        cache = read_json(cache_path)
     except (FileNotFoundError, FileFormatError, OSError):
         cache = {}
-    files, new_cache = {}, {}
-    for rel in dataset_files(root):
+    if full:
+        cache = {}
+    files, new_cache = {}, dict(cache) if only is not None else {}
+    for rel in dataset_files(root) if only is None else only:
         st = (root / rel).stat()
         key = [st.st_size, st.st_mtime_ns, st.st_ino]
         hit = cache.get(rel)
@@ -70,6 +72,15 @@ def manifest_hash(files: dict[str, list]) -> str:
 def content_hash(root: str | os.PathLike) -> str:
     """The dataset's identity: :func:`manifest_hash` of its files as they are now (cheap scan)."""
     return manifest_hash(scan(root))
+
+
+def video_content_hash(video) -> str:
+    """Identity of what a method reads of one :class:`~selfseg.dataset.Video` (its rgb/ and depth/ frames and
+    scene_camera.json), for stage and cache keys; cheap scan. Lists no folder, so ground truth stays unread."""
+    from selfseg.dataset import DEPTH, RGB, SCENE_CAMERA  # selfseg.dataset imports this module
+
+    rels = [t.format(video_id=video.video_id, frame_id=f) for t in (RGB, DEPTH) for f in video.frame_ids]
+    return manifest_hash(scan(video.root, only=rels + [SCENE_CAMERA.format(video_id=video.video_id)]))
 
 
 def write_manifest(root: str | os.PathLike) -> str:

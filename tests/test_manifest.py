@@ -8,6 +8,7 @@ import pytest
 
 from selfseg.dataset import Dataset
 from selfseg.generate.cli import main as generate_scenes
+from selfseg.fileio import hash_json
 from selfseg.manifest import MANIFEST, content_hash, read_manifest, verify, write_manifest
 
 
@@ -68,3 +69,21 @@ def test_generate_scenes_verify_command(data, capsys):
     assert generate_scenes(["--verify", str(data)]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(data / "notes.txt") in err and "1 more" in err and digest in err
+
+
+def test_stage_keys_follow_the_frames_without_reading_ground_truth(data):
+    from selfseg.guard import ground_truth_forbidden
+    from selfseg.method.background import BackgroundConfig
+    from selfseg.method.embed_method import video_key
+    from selfseg.method.recon_stage import recon_key
+    from selfseg.method.reconstruct import ReconConfig
+
+    def keys(vid):
+        v = Dataset(data).video(vid)
+        with ground_truth_forbidden(data):  # raises if the keys touched mask_inst/ or scene_gt.json
+            return hash_json(recon_key(v, ReconConfig(), BackgroundConfig())), hash_json(video_key(v))
+
+    before = {vid: keys(vid) for vid in ("000000", "000001")}
+    _flip_byte(data / "videos/000001/depth/000002.png")
+    assert keys("000000") == before["000000"]
+    assert keys("000001")[0] != before["000001"][0] and keys("000001")[1] != before["000001"][1]
