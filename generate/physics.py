@@ -24,7 +24,7 @@ import pybullet as pb
 import trimesh
 
 from selfseg.fileio import atomic_write_bytes, atomic_write_text
-from selfseg.generate.determinism import snap, snap_pose
+from selfseg.generate.determinism import is_pinned, snap, snap_pose
 from selfseg.generate.objects import ObjectModel
 
 TABLE_ID = -1  # stands for the table in DropResult.penetrations and DropResult.contacts
@@ -143,9 +143,11 @@ def _stdout_to_devnull() -> Iterator[None]:
 def vhacd_pieces(obj: ObjectModel, cache_dir: Path | None, resolution: int = 100000) -> list[np.ndarray]:
     """Convex decomposition (VHACD) of a mesh as vertex sets in the model frame.
 
-    With ``cache_dir`` the result is stored as ``vhacd_<meshhash>_<resolution>.obj`` and reused.
+    With ``cache_dir`` the result is stored as ``vhacd_<meshhash>_<resolution>.obj`` and reused; a process whose
+    libraries are not pinned (:mod:`selfseg.generate.determinism`) keeps its own ``..._unpinned.obj``, so that
+    it never hands its machine-dependent result to the ``generate_scenes`` command.
     """
-    key = f"vhacd_{mesh_hash(obj)}_{resolution}.obj"
+    key = f"vhacd_{mesh_hash(obj)}_{resolution}{'' if is_pinned(os.environ) else '_unpinned'}.obj"
     if cache_dir is not None and (Path(cache_dir) / key).exists():
         return read_obj_pieces(Path(cache_dir) / key)
     with tempfile.TemporaryDirectory(prefix="selfseg_vhacd_") as tmp:
