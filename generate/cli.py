@@ -158,7 +158,7 @@ def _user_files_in_videos(out: Path) -> list[str]:
     return [str(p.relative_to(out)) for p in found]
 
 
-def scene_missing(video_dir: Path, cfg: GenerateConfig) -> str | None:
+def _scene_missing(video_dir: Path, cfg: GenerateConfig) -> str | None:
     """What a finished scene of ``cfg`` lacks in ``video_dir`` (its first missing file), None if complete."""
     vid = video_dir.name
     need = [t.format(video_id=vid, frame_id=f) for t in VIDEO_ENTRIES.values() if "{frame_id" in t
@@ -233,7 +233,7 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
                             "remove them or choose another --out")
     for i in range(cfg.scenes):  # a scene folder counts as done only when it is complete
         folder = out / VIDEO_DIR.format(video_id=video_id_str(i))
-        missing = scene_missing(folder, cfg) if folder.is_dir() else None
+        missing = _scene_missing(folder, cfg) if folder.is_dir() else None
         if missing is not None:
             raise GenerateError(f"{out / missing}: missing, so {folder} is not a complete scene; remove that folder "
                                 "(it is regenerated) or use --overwrite")

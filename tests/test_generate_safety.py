@@ -111,10 +111,10 @@ def test_ctrl_c_during_cycles_exits_130_and_resumes_identically(tmp_path, ctrl_c
 
 @pytest.mark.slow
 def test_ctrl_c_mid_scene_returns_within_a_few_frames(tmp_path, ctrl_c_child):
-    """One 30-frame Cycles scene: Ctrl-C after its first frames are on disk ends the run within a few frames'
-    time (not after the scene's 30), rc 130; the resumed dataset is byte-identical to an uninterrupted one."""
+    """One 20-frame Cycles scene: Ctrl-C after its first frames are on disk ends the run within a few frames'
+    time (not after the scene's 20), rc 130; the resumed dataset is byte-identical to an uninterrupted one."""
     cmd = [sys.executable, "-m", "selfseg.generate.cli", "--preset", "tiny", "--renderer", "cycles", "--scenes", "1",
-           "--frames", "30", "--quiet"]
+           "--frames", "20", "--quiet"]
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(cmd + ["--out", str(out)], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                             **ctrl_c_child)
@@ -134,13 +134,13 @@ def test_ctrl_c_mid_scene_returns_within_a_few_frames(tmp_path, ctrl_c_child):
     _, err = proc.communicate(timeout=120)
     took = time.monotonic() - t0
     assert proc.returncode == 130, err
-    assert took < 3 * frame_s + 2.0 < 27 * frame_s, (took, frame_s)  # the rest of the scene: about 27 frames
+    assert took < 3 * frame_s + 2.0 < 17 * frame_s, (took, frame_s)  # the rest of the scene: about 17 frames
     assert not out.joinpath("videos").exists() or not any(out.joinpath("videos").iterdir())
-    resumed = subprocess.run(cmd + ["--out", str(out)], capture_output=True, text=True, timeout=300)
-    fresh = subprocess.run(cmd + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True, timeout=300)
+    resumed = subprocess.run(cmd + ["--out", str(out)], capture_output=True, text=True, timeout=900)
+    fresh = subprocess.run(cmd + ["--out", str(tmp_path / "fresh")], capture_output=True, text=True, timeout=900)
     assert resumed.returncode == 0 and fresh.returncode == 0, resumed.stderr + fresh.stderr
     files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
-    assert len(files) > 90 and files == sorted(p.relative_to(tmp_path / "fresh")
+    assert len(files) > 60 and files == sorted(p.relative_to(tmp_path / "fresh")
                                                for p in (tmp_path / "fresh").rglob("*") if p.is_file())
     assert all((out / f).read_bytes() == (tmp_path / "fresh" / f).read_bytes() for f in files)
 
