@@ -35,7 +35,7 @@ def _drop_hash(env: dict, tmp_path: Path, scene: int = 0, cpus: str | None = Non
     cmd = [sys.executable, "-c", _DROP, str(scene)]
     if cpus is not None and shutil.which("taskset"):
         cmd = ["taskset", "-c", cpus, *cmd]
-    run = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    run = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     return run.stdout.strip()
 
@@ -75,7 +75,7 @@ def test_generate_scenes_same_bytes_on_an_emulated_machine(tmp_path):
         if cpus is not None and shutil.which("taskset"):
             full = ["taskset", "-c", cpus, *full]
         run = subprocess.run(full, env={**os.environ, **extra}, cwd=tmp_path, capture_output=True, text=True,
-                             timeout=300)
+                             timeout=900)
         assert run.returncode == 0, run.stderr
         trees.append(_tree_hashes(tmp_path / name))
     assert len(trees[0]) > 10 and trees[0] == trees[1], json.dumps(
