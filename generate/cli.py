@@ -26,9 +26,11 @@ from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_
                              SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
+from selfseg.generate.determinism import reexec_pinned
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
+from selfseg.manifest import MANIFEST, verify, write_manifest
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
 EXIT_BAD_INPUT = 2
@@ -48,7 +50,7 @@ def _resolution(text: str) -> tuple[int, int]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="generate_scenes", description=__doc__.split("\n")[0])
     p.add_argument("--preset", choices=list(PRESETS), default="tiny", help="base configuration (default: tiny)")
-    p.add_argument("--out", required=True, type=Path, help="dataset folder to create or resume")
+    p.add_argument("--out", type=Path, help="dataset folder to create or resume (required unless --verify)")
     p.add_argument("--scenes", type=int, help="number of scenes (videos)")
     p.add_argument("--frames", type=int, help="frames per full-rate video")
     p.add_argument("--frame-step", type=int, help="render only every n-th frame (frame ids keep the full-rate index)")
@@ -75,7 +77,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=Path(os.environ.get("SELFSEG_CACHE", Path.home() / ".cache" / "selfseg")),
                    help="cache for collision decompositions (default ~/.cache/selfseg or $SELFSEG_CACHE)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--verify", type=Path, metavar="DIR", help="check every byte of the dataset DIR against its "
+                   "manifest.json and print its manifest hash (exit 1 if it differs); generates nothing")
     return p
+
+
+def verify_dataset(root: Path) -> int:
+    """``--verify DIR``: one line; 0 if every file matches the manifest, 1 if not, 2 without a manifest."""
+    try:
+        digest, problems = verify(root, full=True)
+    except (FileNotFoundError, FileFormatError) as e:
+        print(f"generate_scenes: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if problems:
+        more = f" (and {len(problems) - 1} more differences)" if len(problems) > 1 else ""
+        print(f"generate_scenes: {root / problems[0]}{more}; {root} is not the data of manifest {digest}",
+              file=sys.stderr)
+        return 1
+    print(f"{root}: every file matches manifest {digest}")
+    return 0
 
 
 def config_from_args(args: argparse.Namespace) -> GenerateConfig:
@@ -104,7 +124,8 @@ def _stored_config(out: Path) -> dict | None:
 def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
     """Entries of ``out`` that this dataset would not have written."""
     scene_names = {video_id_str(i) for i in range(cfg.scenes)}
-    foreign = [p.name for p in out.iterdir() if p.name not in (DATASET_INFO, PROGRESS_FILE, MODELS_DIR, VIDEOS_DIR)]
+    foreign = [p.name for p in out.iterdir() if p.name not in (DATASET_INFO, PROGRESS_FILE, MANIFEST, MODELS_DIR,
+                                                                VIDEOS_DIR)]
     videos = out / VIDEOS_DIR
     if videos.is_dir():
         foreign += [f"{VIDEOS_DIR}/{p.name}" for p in videos.iterdir()
@@ -112,18 +133,51 @@ def _foreign_entries(out: Path, cfg: GenerateConfig) -> list[str]:
     return sorted(foreign)
 
 
+# a video folder's entries in the dataset format: rgb, depth, mask_inst and the three JSON records
+VIDEO_ENTRIES = {Path(t.format(video_id="0", frame_id=0)).parts[2]: t for t in
+                 (RGB, DEPTH, MASK_INST, SCENE_CAMERA, SCENE_GT, SCENE_INFO)}
+FRAME_FOLDERS = sorted(e for e, t in VIDEO_ENTRIES.items() if "{frame_id" in t)
+
+
+def _video_folders(out: Path) -> list[Path]:
+    """The six-digit video folders of ``out``, sorted."""
+    videos = out / VIDEOS_DIR
+    return sorted(p for p in videos.iterdir() if re.fullmatch(r"\d{6}", p.name)) if videos.is_dir() else []
+
+
+def _user_files_in_videos(out: Path) -> list[str]:
+    """Files inside video folders that the dataset format does not own (``out``-relative): entries besides
+    :data:`VIDEO_ENTRIES`, and anything in rgb/, depth/, mask_inst/ but six-digit PNG frames."""
+    found = []
+    for v in _video_folders(out):
+        for p in sorted(v.iterdir()):
+            if p.name not in VIDEO_ENTRIES:
+                found.append(p)
+            elif p.name in FRAME_FOLDERS and p.is_dir():
+                found += [q for q in sorted(p.iterdir()) if not re.fullmatch(r"\d{6}\.png", q.name)]
+    return [str(p.relative_to(out)) for p in found]
+
+
+def _scene_missing(video_dir: Path, cfg: GenerateConfig) -> str | None:
+    """What a finished scene of ``cfg`` lacks in ``video_dir`` (its first missing file), None if complete."""
+    vid = video_dir.name
+    need = [t.format(video_id=vid, frame_id=f) for t in VIDEO_ENTRIES.values() if "{frame_id" in t
+            for f in cfg.frame_ids]
+    need += [t.format(video_id=vid) for t in VIDEO_ENTRIES.values() if "{frame_id" not in t]
+    root = video_dir.parent.parent
+    return next((rel for rel in need if not (root / rel).is_file()), None)
+
+
 def remove_dataset(out: Path) -> list[str]:
-    """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, models/obj_*.ply
-    and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON records,
-    plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
-    video_entries = {Path(t.format(video_id="0", frame_id=0)).parts[2] for t in
-                     (RGB, DEPTH, MASK_INST, SCENE_CAMERA, SCENE_GT, SCENE_INFO)}
-    owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MODELS_INFO]
+    """Delete what the dataset format owns in ``out`` (dataset_info.json, the progress record, manifest.json,
+    models/obj_*.ply and models_info.json, and per six-digit video folder its rgb/, depth/, mask_inst/ and JSON
+    records, plus interrupted scenes); folders left empty go too. Any other file stays. Returns what was removed."""
+    owned = [out / DATASET_INFO, out / PROGRESS_FILE, out / MANIFEST, out / MODELS_INFO]
     owned += sorted((out / MODELS_DIR).glob("obj_[0-9][0-9][0-9][0-9][0-9][0-9].ply"))
     videos = out / VIDEOS_DIR
     owned += sorted(videos.glob(".*.partial")) if videos.is_dir() else []
-    video_dirs = sorted(p for p in videos.iterdir() if re.fullmatch(r"\d{6}", p.name)) if videos.is_dir() else []
-    owned += [v / e for v in video_dirs for e in sorted(video_entries)]
+    video_dirs = _video_folders(out)
+    owned += [v / e for v in video_dirs for e in sorted(VIDEO_ENTRIES)]
     removed = []
     for path in owned:
         if path.is_dir() and not path.is_symlink():
@@ -154,6 +208,11 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
         if stored is None:
             raise GenerateError(f"{out}: not a selfseg dataset (no {DATASET_INFO}); refusing to delete it even with "
                                 "--overwrite. Choose another --out or empty the folder yourself")
+        inside = _user_files_in_videos(out)
+        if inside:  # emptying that video would leave a folder that looks finished but holds no scene
+            raise GenerateError(f"{out / inside[0]}: a file generate_scenes did not write is inside a video folder "
+                                f"({len(inside)} such files); --overwrite would empty that video. Move them out of "
+                                f"{out / VIDEOS_DIR} first")
         removed = remove_dataset(out)
         kept = sorted(p.name for p in out.iterdir())
         print(f"generate_scenes: --overwrite removed {len(removed)} dataset entries from {out} "
@@ -172,6 +231,12 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
     if foreign:
         raise GenerateError(f"{out}: contains files this dataset did not write ({', '.join(foreign[:5])}); "
                             "remove them or choose another --out")
+    for i in range(cfg.scenes):  # a scene folder counts as done only when it is complete
+        folder = out / VIDEO_DIR.format(video_id=video_id_str(i))
+        missing = _scene_missing(folder, cfg) if folder.is_dir() else None
+        if missing is not None:
+            raise GenerateError(f"{out / missing}: missing, so {folder} is not a complete scene; remove that folder "
+                                "(it is regenerated) or use --overwrite")
     for stale in (out / VIDEOS_DIR).glob(".*.partial"):  # left by an interrupted scene
         shutil.rmtree(stale)
 
@@ -278,14 +343,22 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
         "config": cfg_dict, "seed": cfg.seed, "frame_ids": cfg.frame_ids,
         "objects": [{"obj_id": i + 1, "name": o.name, "source": o.source, "nonconvex": bool(o.nonconvex)}
                     for i, o in enumerate(library)]})
+    digest = write_manifest(out)
     (out / PROGRESS_FILE).unlink()
     totals["models"] = time.perf_counter() - t0
     print(_summary(totals, time.perf_counter() - t_start, len(todo) * len(cfg.frame_ids), len(todo), skipped, out))
+    print(f"generate_scenes: {out}: manifest hash {digest}")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the command: the same bytes on every x86-64 machine (selfseg.generate.determinism)
+        reexec_pinned("selfseg.generate.cli")
     args = build_parser().parse_args(argv)
+    if args.verify is not None:
+        return verify_dataset(args.verify)
+    if args.out is None:
+        build_parser().error("--out is required (or --verify DIR)")
     t_start = time.perf_counter()
     try:
         executor = open_executor(args)

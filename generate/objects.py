@@ -22,6 +22,7 @@ import trimesh
 
 from selfseg.dataset import MODEL_PLY, MODELS_INFO, transform_points
 from selfseg.fileio import atomic_write_bytes, write_json
+from selfseg.generate.determinism import snap
 from selfseg.generate.textures import atlas, make_texture, seed_from_name
 
 SECTIONS = 48  # angular resolution of round parts
@@ -285,11 +286,11 @@ def _assemble(name: str, parts: list[_Part], nonconvex: bool, source: str = "bui
     lo, hi = V.min(0), V.max(0)
     shift = -np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
     hulls = []
-    for pts in coll if nonconvex else []:
-        h = trimesh.convex.convex_hull(pts + shift)
+    for pts in coll if nonconvex else []:  # snapped: see selfseg.generate.determinism
+        h = trimesh.convex.convex_hull(snap(pts + shift))
         hulls.append((np.asarray(h.vertices, dtype=np.float64), np.asarray(h.faces, dtype=np.int64)))
-    return ObjectModel(name=name, vertices=V + shift, faces=np.concatenate(faces).astype(np.int64),
-                       uv=np.concatenate(uvs), texture=tex, collision_parts=hulls if nonconvex else None,
+    return ObjectModel(name=name, vertices=snap(V + shift), faces=np.concatenate(faces).astype(np.int64),
+                       uv=snap(np.concatenate(uvs)), texture=tex, collision_parts=hulls if nonconvex else None,
                        nonconvex=nonconvex, source=source, part_names=[p.name for p in parts])
 
 
@@ -654,7 +655,7 @@ def load_user_object(path: str | os.PathLike, name: str | None = None) -> Object
     uv, tex = _texture_of(mesh, name)
     merged = trimesh.Trimesh(mesh.vertices, mesh.faces)  # processed copy: seams merged
     convex = merged.is_watertight and merged.volume > 0.9 * merged.convex_hull.volume
-    return ObjectModel(name=name, vertices=np.asarray(mesh.vertices, dtype=np.float64),
+    return ObjectModel(name=name, vertices=snap(mesh.vertices),
                        faces=np.asarray(mesh.faces, dtype=np.int64), uv=np.clip(uv, 0.0, 1.0),
                        texture=np.ascontiguousarray(tex, dtype=np.uint8), collision_parts=None, nonconvex=not convex,
                        source=f"user:{path.resolve()}")

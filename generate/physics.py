@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import os
 import sys
 import tempfile
@@ -23,6 +24,7 @@ import pybullet as pb
 import trimesh
 
 from selfseg.fileio import atomic_write_bytes, atomic_write_text
+from selfseg.generate.determinism import is_pinned, snap, snap_pose
 from selfseg.generate.objects import ObjectModel
 
 TABLE_ID = -1  # stands for the table in DropResult.penetrations and DropResult.contacts
@@ -141,9 +143,11 @@ def _stdout_to_devnull() -> Iterator[None]:
 def vhacd_pieces(obj: ObjectModel, cache_dir: Path | None, resolution: int = 100000) -> list[np.ndarray]:
     """Convex decomposition (VHACD) of a mesh as vertex sets in the model frame.
 
-    With ``cache_dir`` the result is stored as ``vhacd_<meshhash>_<resolution>.obj`` and reused.
+    With ``cache_dir`` the result is stored as ``vhacd_<meshhash>_<resolution>.obj`` and reused; a process whose
+    libraries are not pinned (:mod:`selfseg.generate.determinism`) keeps its own ``..._unpinned.obj``, so that
+    it never hands its machine-dependent result to the ``generate_scenes`` command.
     """
-    key = f"vhacd_{mesh_hash(obj)}_{resolution}.obj"
+    key = f"vhacd_{mesh_hash(obj)}_{resolution}{'' if is_pinned(os.environ) else '_unpinned'}.obj"
     if cache_dir is not None and (Path(cache_dir) / key).exists():
         return read_obj_pieces(Path(cache_dir) / key)
     with tempfile.TemporaryDirectory(prefix="selfseg_vhacd_") as tmp:
@@ -176,30 +180,31 @@ def collision_body(obj: ObjectModel, cfg: PhysicsConfig, cache_dir: Path | None)
         point_sets = vhacd_pieces(obj, cache_dir, cfg.vhacd_resolution)
     else:
         point_sets = [obj.vertices]
-    hulls = [trimesh.convex.convex_hull(p) for p in point_sets]
-    vols = np.array([max(h.volume, 1e-9) for h in hulls])
-    com = (np.array([h.center_mass for h in hulls]) * vols[:, None]).sum(0) / vols.sum()
-    pieces = [(np.asarray(h.vertices) - com, np.asarray(h.faces)) for h in hulls]
-    radius = float(np.linalg.norm(obj.vertices - com, axis=1).max())
-    return CollisionBody(pieces, com, max(float(vols.sum()) * cfg.density_kg_m3, 0.01), radius)
+    hulls = [trimesh.convex.convex_hull(snap(p)) for p in point_sets]
+    vols = snap([max(h.volume, 1e-9) for h in hulls], 40)
+    com = snap((np.array([h.center_mass for h in hulls]) * vols[:, None]).sum(0) / vols.sum())
+    pieces = [(np.asarray(h.vertices) - com, np.asarray(h.faces)) for h in hulls]  # exact: both on the grid
+    radius = float(snap(np.sqrt(((obj.vertices - com) ** 2).sum(1)).max()))
+    return CollisionBody(pieces, com, max(float(snap(vols.sum() * cfg.density_kg_m3)), 0.01), radius)
 
 
 # ---- simulation ----------------------------------------------------------------------------
 def _random_rotation(rng: np.random.Generator) -> list[float]:
     """Uniform random quaternion (x, y, z, w)."""
-    q = rng.normal(size=4)
-    return (q / np.linalg.norm(q)).tolist()
+    q = rng.normal(size=4).tolist()
+    n = math.hypot(*q)  # no BLAS: see selfseg.generate.determinism
+    return [x / n for x in q]
 
 
 def _disc_point(rng: np.random.Generator, radius_m: float) -> np.ndarray:
     """A uniform random point (x, y) of the disc of ``radius_m`` around the table centre."""
-    a, r = rng.uniform(0, 2 * np.pi), radius_m * np.sqrt(rng.uniform())
-    return np.array([r * np.cos(a), r * np.sin(a)])
+    a, r = float(rng.uniform(0, 2 * np.pi)), radius_m * math.sqrt(rng.uniform())
+    return np.array([r * math.cos(a), r * math.sin(a)])
 
 
 def _xy_gaps(xy: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """Distance (m) in x, y from ``xy`` to each axis-aligned box (lo, hi); 0 inside."""
-    return np.array([np.linalg.norm(np.maximum(0.0, np.maximum(lo[:2] - xy, xy - hi[:2]))) for lo, hi in boxes])
+    return np.array([math.hypot(*np.maximum(0.0, np.maximum(lo[:2] - xy, xy - hi[:2]))) for lo, hi in boxes])
 
 
 def _start_position(cid: int, radius: float, ids: dict[int, int], rng: np.random.Generator,
@@ -226,12 +231,13 @@ def _start_position(cid: int, radius: float, ids: dict[int, int], rng: np.random
 
 
 def _pose(cid: int, body: int, com: np.ndarray) -> np.ndarray:
-    """T_world_obj of the model frame from the body's pose."""
+    """T_world_obj of the model frame from the body's pose, snapped (rotation to 2^-30, translation to
+    2^-24 m): the scene's stored source of truth."""
     pos, quat = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
     T = np.eye(4)
-    T[:3, :3] = np.asarray(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
-    T[:3, 3] = np.asarray(pos) - T[:3, :3] @ com
-    return T
+    T[:3, :3] = R = np.asarray(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
+    T[:3, 3] = np.asarray(pos) - (R * com).sum(1)  # no BLAS: see selfseg.generate.determinism
+    return snap_pose(T)
 
 
 def _simulate(bodies: list[CollisionBody], files: list[Path], rng: np.random.Generator, cfg: PhysicsConfig) -> DropResult:
@@ -261,7 +267,7 @@ def _simulate(bodies: list[CollisionBody], files: list[Path], rng: np.random.Gen
                     removed.append(i)
                     continue
                 lin, ang = pb.getBaseVelocity(body, physicsClientId=cid)
-                calm = np.linalg.norm(lin) < cfg.settle_linear_mps and np.linalg.norm(ang) < cfg.settle_angular_radps
+                calm = math.hypot(*lin) < cfg.settle_linear_mps and math.hypot(*ang) < cfg.settle_angular_radps
                 still[i] = still.get(i, 0) + 1 if calm else 0
 
         # Objects enter one at a time just above the pile, so that none falls from far.

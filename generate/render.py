@@ -355,14 +355,15 @@ class BlenderScene:
 
     def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb uint8 H×W×3, depth float32 m (0 = background), inst uint16) seen from ``T_world_cam``."""
-        self._raise_if_interrupted()
+        self.raise_if_interrupted()
         self.set_camera(T_world_cam)
         rgb = self.render_rgb()
         depth, inst = self.render_ground_truth()
-        self._raise_if_interrupted()
+        self.raise_if_interrupted()
         return rgb, depth, inst
 
-    def _raise_if_interrupted(self) -> None:
+    def raise_if_interrupted(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came since the last check (call it between frames)."""
         if self._sigints:
             self._sigints.clear()
             raise KeyboardInterrupt
@@ -447,4 +448,4 @@ class BlenderScene:
         if self._previous_sigint is not None:
             signal.signal(signal.SIGINT, self._previous_sigint)
         if exc_type is None:
-            self._raise_if_interrupted()
+            self.raise_if_interrupted()

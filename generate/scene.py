@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from selfseg.dataset import VideoWriter, invert_T, transform_points
 from selfseg.fileio import atomic_dir
+from selfseg.generate.determinism import snap, snap_pose
 from selfseg.generate.objects import ObjectModel
 from selfseg.generate.physics import drop_objects
 from selfseg.generate.presets import GenerateConfig, OrbitConfig
@@ -66,7 +67,7 @@ def camera_orbit(cfg: OrbitConfig, frames: int, center: np.ndarray, rng: np.rand
         r = params["radius_m"] + params["radius_amplitude_m"] * math.sin(swept + params["phase_radius"])
         h = params["height_m"] + params["height_amplitude_m"] * math.sin(swept + params["phase_height"])
         eye = np.array([center[0] + r * math.cos(a), center[1] + r * math.sin(a), h])
-        poses.append(look_at(eye, center))
+        poses.append(snap_pose(look_at(eye, center)))
     return poses, params
 
 
@@ -75,8 +76,8 @@ def _scene_center(objects: list[ObjectModel], poses: list[np.ndarray]) -> tuple[
     z) and the largest distance of an object vertex from it (m)."""
     pts = np.concatenate([transform_points(o.vertices, T) for o, T in zip(objects, poses)])
     lo, hi = pts.min(0), pts.max(0)
-    center = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, max(hi[2], 0.0) / 3])
-    return center, float(np.linalg.norm(pts - center, axis=1).max())
+    center = snap([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, max(hi[2], 0.0) / 3])
+    return center, float(snap(np.sqrt(((pts - center) ** 2).sum(1)).max()))
 
 
 def load_library(cfg: GenerateConfig) -> list[ObjectModel]:
@@ -139,6 +140,7 @@ def generate_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], 
             writer = VideoWriter(tmp)
             for fid in tqdm(cfg.frame_ids, desc=f"scene {index:06d} frames", unit="frame", leave=False,
                             disable=not progress):
+                bscene.raise_if_interrupted()  # Ctrl-C lands between frames, not after the scene
                 T_wc = cams[fid]
                 bscene.set_camera(T_wc)
                 t0 = time.perf_counter()

@@ -16,6 +16,7 @@ import numpy as np
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json
+from selfseg.manifest import video_content_hash
 from selfseg.method.meanshift import MeanShiftConfig, cluster_frame
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
@@ -41,8 +42,8 @@ class EmbeddingMethodConfig:
 
 
 def video_key(video: Video) -> list:
-    """Identity of a video's frames for cache keys: dataset folder, video id, frame ids."""
-    return [os.path.abspath(video.root), video.video_id, video.frame_ids]
+    """Identity of a video's frames for cache keys: dataset folder, video id, frame ids, content."""
+    return [os.path.abspath(video.root), video.video_id, video.frame_ids, video_content_hash(video)]
 
 
 class EmbeddingMethodBase(Method):

@@ -33,6 +33,7 @@ from tqdm import tqdm
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json, read_json, write_json
+from selfseg.manifest import video_content_hash
 from selfseg.method.background import BackgroundConfig, plane_pixels, remove_support_plane, up_hint_from_poses
 from selfseg.method.projection import foreground_mask
 from selfseg.method.reconstruct import ReconConfig, Volume, occupancy, reconstruct
@@ -53,8 +54,10 @@ REPORT_JSON = "report.json"  # world frame, point counts, tracking failures, tim
 
 
 def recon_key(video: Video, cfg: ReconConfig, bg: BackgroundConfig) -> dict:
-    """What determines the stage's output: code version, configs, dataset folder, video id and frame ids."""
+    """What determines the stage's output: code version, configs, dataset folder, video id, frame ids and the
+    content of the video's frames and cameras."""
     return {"stage": STAGE, "code_version": CODE_VERSION, "video_id": video.video_id,
+            "content": video_content_hash(video),
             "dataset": os.path.abspath(video._root),  # noqa: SLF001 (Video has no public root)
             "frame_ids": hash_json(list(video.frame_ids)), "size": [video.width, video.height],
             "recon": to_dict(cfg), "background": to_dict(bg)}

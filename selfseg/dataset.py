@@ -34,7 +34,8 @@ from typing import Any
 import numpy as np
 
 from selfseg.fileio import FileFormatError  # noqa: F401  (re-exported for callers)
-from selfseg.fileio import atomic_write_bytes, hash_json, read_json, write_json
+from selfseg.fileio import atomic_write_bytes, read_json, write_json
+from selfseg.manifest import content_hash
 
 FORMAT_VERSION = 1
 DEPTH_SCALE_MM = 0.1  # millimetres per unit of the depth PNG: 0.1 mm steps, up to 6.55 m
@@ -411,13 +412,8 @@ class Dataset:
         return all((self.root / SCENE_GT.format(video_id=v)).is_file() for v in self.video_ids)
 
     def content_hash(self) -> str:
-        """Hash of the dataset's metadata and every video's camera and ground-truth records."""
-        parts: list[Any] = [self.info]
-        for vid in self.video_ids:
-            for template in (SCENE_CAMERA, SCENE_GT):
-                p = self.root / template.format(video_id=vid)
-                parts.append(read_json(p) if p.is_file() else None)
-        return hash_json(parts, n=16)
+        """The dataset's identity: a hash of every file's size and content (:mod:`selfseg.manifest`)."""
+        return content_hash(self.root)
 
 
 # ---- writers for generators -------------------------------------------------------------------

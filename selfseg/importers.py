@@ -16,6 +16,8 @@ Each SRC is one video folder of the format, or a folder whose sub-folders (sorte
 - ``folder``: ``rgb/*.png|jpg``, ``depth/*.png`` (uint16; mm = value × ``--depth-scale``) paired by
   file stem, ``intrinsics.txt`` (or ``--intrinsics``), optional ``mask_inst/*.png`` (uint16 instance ids).
 
+In ``ycb-video`` and ``folder`` every depth and label frame needs its colour frame: an unpaired one is bad input.
+
 Intrinsics files hold ``fx fy cx cy`` or a 3×3 matrix, OpenCV pixel-centre convention. Frames keep
 their index in the source order as frame id (``--frame-step`` keeps every N-th); ``--resolution``
 resizes colour (area), depth and labels (nearest) and scales K. Without labels the videos carry no
@@ -41,6 +43,7 @@ from tqdm import tqdm
 from selfseg.dataset import (DATASET_INFO, VIDEO_DIR, Dataset, DatasetError, VideoWriter, read_depth_m, read_inst,
                              read_rgb, validate_K, video_id_str, write_dataset_info)
 from selfseg.fileio import FileFormatError, atomic_dir, read_json
+from selfseg.manifest import write_manifest
 
 IMPORTER_VERSION = 1
 FORMATS = ("ycb-video", "tum", "folder")
@@ -120,6 +123,11 @@ def folder_video(src: Path, K_override: np.ndarray | None, depth_scale_mm: float
     if missing:
         raise DatasetError(f"{src / 'depth'}: no depth frame for colour frame {rgbs[missing[0]].name} "
                            f"({len(missing)} missing)")
+    for sub, extra in (("depth", depths), ("mask_inst", masks)):
+        unpaired = [s for s in extra if s not in rgbs]
+        if unpaired:
+            raise DatasetError(f"{extra[unpaired[0]]}: no colour frame {unpaired[0]}.* in {src / 'rgb'} for this "
+                               f"{sub} frame ({len(unpaired)} unpaired)")
     labeled = bool(masks)
     if labeled and any(s not in masks for s in rgbs):
         s = next(s for s in rgbs if s not in masks)
@@ -206,6 +214,11 @@ def ycb_video(src: Path, K_override: np.ndarray | None) -> SourceVideo:
     from scipy.io import loadmat
 
     colors = sorted(src.glob("*-color.png"))
+    stems = {c.name[:-len("-color.png")] for c in colors}
+    for kind in ("depth", "label"):
+        unpaired = [p for p in sorted(src.glob(f"*-{kind}.png")) if p.name[:-len(f"-{kind}.png")] not in stems]
+        if unpaired:
+            raise DatasetError(f"{unpaired[0]}: no -color.png frame for this {kind} frame ({len(unpaired)} unpaired)")
     frames, labeled, instances = [], None, {}
     for c in colors:
         stem = c.name[:-len("-color.png")]
@@ -370,7 +383,8 @@ def run(args: argparse.Namespace) -> int:
         import_video(video, vdir, args.frame_step, args.resolution, size, progress=not args.quiet)
     ds = Dataset(out)
     print(f"{ds}: {len(videos) - done} imported, {done} already present; "
-          f"{'labelled' if ds.has_labels() else 'unlabeled (train/segment only; evaluate needs labels)'}")
+          f"{'labelled' if ds.has_labels() else 'unlabeled (train/segment only; evaluate needs labels)'}; "
+          f"manifest hash {write_manifest(out)}")
     return 0
 
 

@@ -14,6 +14,7 @@ from selfseg.generate.cli import main
 from selfseg.generate.objects import PAPER_SUBSET
 from selfseg.generate.presets import preset_config
 from selfseg.generate.scene import camera_orbit, choose_objects, scene_seed
+from selfseg.manifest import read_manifest, verify
 
 ARGS = ["--preset", "tiny", "--scenes", "2", "--frames", "2", "--resolution", "64x48", "--objects-per-scene", "3",
         "--renderer", "workbench", "--seed", "5", "--quiet"]
@@ -28,6 +29,13 @@ def generated(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen") / "ds"
     assert _run(out) == 0
     return out
+
+
+def test_generated_dataset_has_a_manifest_of_every_file(generated):
+    digest, problems = verify(generated)
+    files = read_manifest(generated)["files"]
+    assert problems == [] and digest == Dataset(generated).content_hash()
+    assert len(files) == 2 * 2 * 3 + 2 * 3 + 1 + 1 + len(preset_config("tiny").object_pool)  # frames, JSON, info, models
 
 
 def _rotation_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:

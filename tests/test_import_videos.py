@@ -10,6 +10,7 @@ import pytest
 
 from selfseg.dataset import Dataset, depth_to_png_units
 from selfseg.importers import associate, main, scale_K
+from selfseg.manifest import verify
 
 TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
 
@@ -58,8 +59,10 @@ def test_folder_round_trip_is_exact_and_resumes(tmp_path, capsys):
     mtime = kept.stat().st_mtime_ns
     shutil.rmtree(out / "videos" / "000001")
     assert main(["--format", "folder", str(src), "--out", str(out), "--depth-scale", "0.1", "--quiet"]) == 0
-    assert "1 imported, 1 already present" in capsys.readouterr().out
+    stdout = capsys.readouterr().out
+    assert "1 imported, 1 already present" in stdout
     assert kept.stat().st_mtime_ns == mtime and len(Dataset(out).video_ids) == 2
+    assert verify(out) == (Dataset(out).content_hash(), []) and f"manifest hash {verify(out)[0]}" in stdout
     # other options into the same folder: refused
     assert main(["--format", "folder", str(src), "--out", str(out), "--depth-scale", "1", "--quiet"]) == 2
 
@@ -193,3 +196,35 @@ def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys):
     _png(f / "depth" / "000001.png", np.zeros((ds.height, ds.width), np.uint8))
     assert main(["--format", "folder", str(f), "--out", str(tmp_path / "o6"), "--depth-scale", "0.1", "--quiet"]) == 2
     assert "000001.png: depth must be a single-channel uint16 PNG" in _err(capsys)
+
+
+def test_unpaired_depth_or_label_frame_is_one_line_exit_2(tmp_path, capsys):
+    """An extra depth or label frame without its colour frame is named, not silently dropped."""
+    from scipy.io import savemat
+
+    rgb, depth = np.zeros((6, 8, 3), np.uint8), np.full((6, 8), 5000, np.uint16)
+    K = np.array([[8.0, 0, 3.5], [0, 8.0, 2.5], [0, 0, 1]])
+    cases = []
+    for name, extra in (("depth", "depth/000002.png"), ("mask_inst", "mask_inst/000002.png")):
+        f = tmp_path / f"folder-{name}"
+        for i in range(2):
+            _png(f / "rgb" / f"{i:06d}.png", rgb)
+            _png(f / "depth" / f"{i:06d}.png", depth)
+            _png(f / "mask_inst" / f"{i:06d}.png", np.zeros((6, 8), np.uint16))
+        _png(f / extra, depth)
+        (f / "intrinsics.txt").write_text("8 8 3.5 2.5")
+        cases.append(("folder", f, f / extra))
+    for kind in ("depth", "label"):
+        y = tmp_path / f"ycb-{kind}" / "0048"
+        for i in (1, 2):
+            _png(y / f"{i:06d}-color.png", rgb)
+            _png(y / f"{i:06d}-depth.png", depth)
+            savemat(y / f"{i:06d}-meta.mat", {"intrinsic_matrix": K, "factor_depth": np.array([[10000.0]])})
+        _png(y / f"000003-{kind}.png", depth)
+        cases.append(("ycb-video", y, y / f"000003-{kind}.png"))
+    for k, (fmt, src, extra) in enumerate(cases):
+        out = tmp_path / f"out{k}"
+        assert main(["--format", fmt, str(src), "--out", str(out), "--quiet"]) == 2, (fmt, extra)
+        err = _err(capsys)
+        assert err.count(str(extra)) == 1 and "unpaired" in err, err
+        assert not out.exists()

@@ -1,10 +1,13 @@
 """Physics drop: objects come to rest on the table without interpenetrating, deterministically."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import trimesh
 
+from selfseg.generate.determinism import pinned_env
 from selfseg.generate.objects import ObjectModel, builtin_library
 from selfseg.generate.physics import TABLE_ID, PhysicsConfig, collision_body, drop_objects
 
@@ -113,7 +116,7 @@ def _l_shape() -> ObjectModel:
                        None, True, "test")
 
 
-def test_vhacd_decomposition_is_cached(tmp_path):
+def test_vhacd_decomposition_is_cached(tmp_path, monkeypatch):
     ell = _l_shape()
     body = collision_body(ell, PhysicsConfig(vhacd_resolution=20000), tmp_path)
     cached = sorted(tmp_path.glob("vhacd_*.obj"))
@@ -125,6 +128,10 @@ def test_vhacd_decomposition_is_cached(tmp_path):
     r = drop_objects([ell], seed=0, cfg=PhysicsConfig(vhacd_resolution=20000), cache_dir=tmp_path)
     assert cached[0].stat().st_mtime_ns == stamp  # reused, not recomputed
     assert list(r.poses) == [0] and abs(_world(ell, r.poses[0])[:, 2].min()) < 3 * MM
+    # a pinned process (the generate_scenes command) never reads this unpinned process's decomposition
+    monkeypatch.setattr(os, "environ", pinned_env(dict(os.environ)))
+    collision_body(ell, PhysicsConfig(vhacd_resolution=20000), tmp_path)
+    assert [p.name.endswith("_unpinned.obj") for p in sorted(tmp_path.glob("vhacd_*.obj"))] == [False, True]
 
 
 def test_spread_layout_keeps_objects_apart_and_is_deterministic():

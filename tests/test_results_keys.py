@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -137,3 +138,30 @@ def test_ctrl_c_exits_130_with_one_line_and_resumes_identically(analytic_dataset
         a, b = (json.loads((root / f"scores/analytic/slow-depth-clustering/fold{k}.json").read_text())
                 for root in (out, tmp_path / "fresh"))
         assert a["metrics"] == b["metrics"] and a["per_video"] == b["per_video"]
+
+
+def test_a_changed_depth_frame_invalidates_reuse_and_the_view(analytic_dataset, tmp_path, capsys):
+    """Identity covers every frame: a copy whose test depth frame was replaced (JSON unchanged) is not
+    reused, under the same run name or a new one, and its unlabeled view links the new frame."""
+    root = tmp_path / "copy" / "analytic"
+    shutil.copytree(analytic_dataset, root)
+    out = tmp_path / "res"
+    args = ["--method", "fg-components", "--data", root, "--out", out, "--folds", "0", "--frame-stride", "3"]
+    assert evaluate(capsys, *args, "--quiet")[0] == 0
+    code, _, err = evaluate(capsys, *args)
+    assert code == 0 and "reusing" in err
+    vid = fold_split(Dataset(root), 0)[1][0]
+    frame = root / "videos" / vid / "depth" / "000000.png"
+    depth = cv2.imread(str(frame), cv2.IMREAD_UNCHANGED)
+    depth[depth > 0] -= 100  # everything 1 cm nearer
+    frame.unlink()
+    assert cv2.imwrite(str(frame), depth)
+    for name in ("fg-components", "renamed"):
+        code, _, err = evaluate(capsys, *args, "--name", name)
+        assert code == 0 and "reusing" not in err, err
+    views = sorted((out / "work/_views").iterdir())
+    assert len(views) == 2
+    new_view = next(v for v in views if Dataset(root).content_hash() in v.name)
+    assert (new_view / "analytic/videos" / vid / "depth/000000.png").read_bytes() == frame.read_bytes()
+    hashes = {read_json(p)["dataset"]["content_hash"] for p in (out / "scores").rglob("fold0.json")}
+    assert Dataset(root).content_hash() in hashes
