@@ -458,8 +458,3 @@ class VideoWriter:
             write_json(self.dir / "scene_info.json", scene_info)
         write_json(self.dir / "scene_camera.json", self.cameras)
 
-
-def open_dataset(root: str | os.PathLike) -> Dataset:
-    """Open a dataset folder, with clear errors for anything that is not one."""
-    return Dataset(root)
-
