@@ -457,4 +457,3 @@ class VideoWriter:
             write_json(self.dir / "scene_gt.json", self.gts)
             write_json(self.dir / "scene_info.json", scene_info)
         write_json(self.dir / "scene_camera.json", self.cameras)
-

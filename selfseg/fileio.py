@@ -101,4 +101,3 @@ def atomic_dir(final: str | os.PathLike) -> Iterator[Path]:
 def hash_json(obj: Any, n: int = 12) -> str:
     """Short sha256 of the canonical JSON of ``obj`` (sorted keys, no whitespace)."""
     return hashlib.sha256(dumps_json(obj, indent=None).encode()).hexdigest()[:n]
-
