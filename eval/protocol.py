@@ -166,10 +166,10 @@ def _check_prediction(pred, name: str, video_id: str, frame_id: int, shape: tupl
 def estimated_foreground(video, frame_id: int) -> np.ndarray:
     """bool H×W foreground of ``--foreground plane``: the frame's depth points above the support plane
     (RANSAC with the default :class:`BackgroundConfig`, the methods' own background stage)."""
-    from selfseg.baselines.semantic_instances import frame_foreground
-    from selfseg.method.background import BackgroundConfig
+    from selfseg.method.background import BackgroundConfig, frame_foreground
 
-    return frame_foreground(video, frame_id, BackgroundConfig())
+    return frame_foreground(video.depth_m(frame_id), video.K(frame_id), BackgroundConfig(),
+                            f"video {video.video_id} frame {frame_id}")
 
 
 def unlabeled_view(dataset: Dataset, out: Path, poses_given: bool) -> Path:

@@ -99,7 +99,8 @@ def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K2
 
 
-def _images(folder: Path) -> dict[str, Path]:
+def image_files(folder: Path) -> dict[str, Path]:
+    """The folder's colour/depth/mask images by stem (``IMAGE_EXTS``), sorted; {} if it is no folder."""
     return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_EXTS} if folder.is_dir() else {}
 
 
@@ -113,7 +114,7 @@ def is_video(fmt: str, folder: Path) -> bool:
 
 
 def folder_video(src: Path, K_override: np.ndarray | None, depth_scale_mm: float) -> SourceVideo:
-    rgbs, depths, masks = _images(src / "rgb"), _images(src / "depth"), _images(src / "mask_inst")
+    rgbs, depths, masks = image_files(src / "rgb"), image_files(src / "depth"), image_files(src / "mask_inst")
     if not rgbs:
         raise DatasetError(f"{src / 'rgb'}: no .png/.jpg frames")
     missing = [s for s in rgbs if s not in depths]
