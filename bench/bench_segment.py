@@ -25,12 +25,13 @@ import cv2
 import numpy as np
 import torch
 
-from selfseg.dataset import Dataset, depth_to_png_units, write_inst, write_rgb
+from selfseg.dataset import Dataset
 from selfseg.fileio import write_json
 from selfseg.importers import scale_K
 from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.cli import segment_main
 from selfseg.method.deploy import train_model
+from selfseg.writers import depth_to_png_units, write_inst, write_rgb
 
 W, H = 320, 240
 

@@ -23,12 +23,13 @@ from tqdm import tqdm
 
 from selfseg.config import ConfigError, from_dict, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_INFO, RGB, SCENE_CAMERA, SCENE_GT,
-                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
+                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str)
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
+from selfseg.writers import write_dataset_info
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
 EXIT_BAD_INPUT = 2

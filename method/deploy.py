@@ -28,8 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, config_hash, from_dict, load_config, to_dict
-from selfseg.dataset import (Dataset, DatasetError, read_depth_m, read_inst, read_rgb, validate_K, write_inst,
-                             write_rgb)
+from selfseg.dataset import Dataset, DatasetError, read_depth_m, read_inst, read_rgb, validate_K
 from selfseg.fileio import atomic_dir, read_json, write_json
 from selfseg.guard import ground_truth_forbidden
 from selfseg.importers import IMAGE_EXTS, image_files, read_intrinsics
@@ -37,6 +36,7 @@ from selfseg.method.background import frame_foreground
 from selfseg.method.meanshift import cluster_frame
 from selfseg.method.pipeline import Ours
 from selfseg.registry import UnknownMethodError, get_method_class
+from selfseg.writers import write_inst, write_rgb
 
 MODEL_FORMAT = "selfseg-model"
 MODEL_VERSION = 1

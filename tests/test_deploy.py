@@ -9,12 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from selfseg.dataset import Dataset, read_inst, write_inst
+from selfseg.dataset import Dataset, read_inst
 from selfseg.eval.cli import main as evaluate
 from selfseg.eval.protocol import fold_split, select_test_frames
 from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.cli import segment_main, train_main
 from selfseg.method.deploy import MODEL_JSON, preview
+from selfseg.writers import write_inst
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below

@@ -49,7 +49,8 @@ def imported_names(module: str, path: Path) -> list[tuple[int, str]]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                pkg = module.split(".")[:-node.level] if path.stem != "__init__" or node.level > 1 else module.split(".")
+                pkg = module.split(".")[:None if path.stem == "__init__" else -1]
+                pkg = pkg[:len(pkg) - node.level + 1]
                 base = ".".join(pkg + ([base] if base else []))
             out += [(node.lineno, f"{base}.{a.name}") for a in node.names]
     return out
