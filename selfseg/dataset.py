@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 
-from selfseg.fileio import FileFormatError  # noqa: F401  (re-exported for callers)
 from selfseg.fileio import hash_json, read_json
 from selfseg.poses import invert_T, rt_to_T
 
