@@ -22,13 +22,11 @@ from torch import nn
 
 from selfseg.baselines.detection_ops import (box_iou, clip_boxes, decode_boxes, encode_boxes, masks_to_boxes, nms,
                                             paste_masks, roi_align)
-from selfseg.baselines.semantic_instances import finished, result_key, save_final, train_loop
-from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_train_data, shared_train_dir,
-                                        train_data_record)
+from selfseg.baselines.semantic_instances import finished, save_final, train_loop
+from selfseg.baselines.sim_data import GTFrames, SimSchedule, SimTrainedMethod
 from selfseg.dataset import Video
 from selfseg.method.network import ENCODER_BLOCKS, ResNetEncoder
 from selfseg.method.train import WEIGHTS, begin_training
-from selfseg.method_api import Method
 
 RPN_WEIGHTS = (1.0, 1.0, 1.0, 1.0)
 BOX_WEIGHTS = (10.0, 10.0, 5.0, 5.0)
@@ -294,26 +292,20 @@ def masks_to_instances(probs: torch.Tensor, threshold: float, fg_mask: np.ndarra
     return np.where(fg_mask, inst, 0)
 
 
-class SDMaskRCNNSim(Method):
+class SDMaskRCNNSim(SimTrainedMethod):
     """Baseline D: SD Mask R-CNN (depth-only Mask R-CNN) trained on a disjoint-object synthetic dataset."""
 
     name = "sdmaskrcnn-sim"
     config_cls = SDMaskRCNNConfig
-    needs_ground_truth = False  # the *test* dataset's labels are never read; train_data is another dataset
-    needs_fit = True
+    test_time_fields = TEST_TIME_FIELDS
 
     def __init__(self, config=None, workdir: str | Path | None = None):
         super().__init__(config, workdir)
         self.model: MaskRCNN | None = None
-        self.train_data: dict | None = None  # provenance of the training dataset (set by fit)
 
     def fit(self, train_videos: list[Video]) -> None:
         cfg = self.config
-        ds = open_disjoint_train_data(cfg.train_data, train_videos[0].root, self.name)
-        self.train_data = train_data_record(ds)
-        key = {"config": {k: v for k, v in result_key(cfg).items() if k not in TEST_TIME_FIELDS + ("train_data",)},
-               "train_data": self.train_data["content_hash"]}
-        out = shared_train_dir(self.workdir, self.name, key)
+        ds, key, out = self.open_training(train_videos)
         begin_training(cfg.train)  # seeds the initial weights: build the network after it
         self.model = MaskRCNN(cfg.net)
         saved = finished(out / WEIGHTS, key)

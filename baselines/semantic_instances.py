@@ -8,7 +8,7 @@ same connectivity and minimum size defaults) as ``ours`` applies to its mean-shi
 
 Training foreground: the methods are unlabeled, so the training frames' foreground comes from
 their own depth: every frame's depth is back-projected, the support plane is found by RANSAC and
-removed (:func:`selfseg.method.background.remove_support_plane`, camera frame, no up hint: the
+removed (:func:`selfseg.method.background.frame_foreground`, camera frame, no up hint: the
 largest plane, oriented so that most other points lie above it), and the pixels of the points kept
 above it are foreground. At test time the evaluator's ground-truth foreground mask is used, as for
 every method. Only foreground pixels enter clustering and the losses.
@@ -32,14 +32,13 @@ from tqdm import tqdm
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json, write_json
-from selfseg.method.background import BackgroundConfig, BackgroundError, remove_support_plane
+from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
 from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, TrainConfig, _latest_checkpoint,
                                   _save_checkpoint, _save_torch, resolve_device)
 from selfseg.method_api import Method
-from selfseg.raycast import backproject
 
 TRAIN_DIR = "{method}-{key_hash}"  # in the method's workdir: its training run (files: selfseg.method.train)
 
@@ -112,21 +111,6 @@ class SemanticConfig:
             raise ValueError(f"frame_stride must be ≥ 1, got {self.frame_stride}")
 
 
-def frame_foreground(video: Video, frame_id: int, cfg: BackgroundConfig) -> np.ndarray:
-    """bool H×W: the frame's pixels whose depth point stands above the support plane (see the module
-    docstring); every pixel with depth if no plane is found."""
-    depth = video.depth_m(frame_id)
-    pts, vu = backproject(depth, video.K(frame_id))
-    out = np.zeros(depth.shape, bool)
-    try:
-        keep, _ = remove_support_plane(pts, None, cfg, where=f"video {video.video_id} frame {frame_id}")
-    except BackgroundError as e:
-        tqdm.write(f"warning: {e}; using every pixel with depth as foreground")
-        keep = np.ones(len(pts), bool)
-    out[vu[keep, 0], vu[keep, 1]] = True
-    return out
-
-
 class UnlabeledFrames:
     """Training frames with their own foreground masks, loaded once: ``frames[i]`` → (rgb uint8 H×W×3,
     labels int32 H×W with 0 = foreground, −1 = background), the pair format of ``augment``."""
@@ -138,7 +122,8 @@ class UnlabeledFrames:
         self.rgb, self.labels = [], []
         for v, f in tqdm(items, desc="training foreground", unit="frame", disable=not progress, leave=False):
             self.rgb.append(v.rgb(f))
-            self.labels.append(np.where(frame_foreground(v, f, bg), 0, -1).astype(np.int32))
+            fg = frame_foreground(v.depth_m(f), v.K(f), bg, f"video {v.video_id} frame {f}")
+            self.labels.append(np.where(fg, 0, -1).astype(np.int32))
 
     def __len__(self) -> int:
         return len(self.rgb)

@@ -12,12 +12,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from selfseg.dataset import Dataset, DatasetError
+from selfseg.baselines.semantic_instances import result_key
+from selfseg.dataset import Dataset, DatasetError, Video
 from selfseg.fileio import hash_json
 from selfseg.method.train import OptimSchedule
+from selfseg.method_api import Method
 
 SHARED_TRAIN_DIR = "{method}-{key_hash:.12}"  # beside the fold folders: a method's networks trained on train_data
 
@@ -111,3 +114,25 @@ def shared_train_dir(workdir: Path | None, method: str, key: dict) -> Path:
     other settings apart."""
     fold_dir = Path(workdir) if workdir is not None else Path("work/fold")
     return fold_dir.parent / SHARED_TRAIN_DIR.format(method=method, key_hash=hash_json(key))
+
+
+class SimTrainedMethod(Method):
+    """A baseline trained only on ``config.train_data``; ``test_time_fields`` are the config's settings
+    read at test time alone (changing them reuses the trained networks)."""
+
+    needs_ground_truth = False  # the *test* dataset's labels are never read; train_data is another dataset
+    needs_fit = True
+    test_time_fields: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, config=None, workdir: str | Path | None = None):
+        super().__init__(config, workdir)
+        self.train_data: dict | None = None  # provenance of the training dataset (set by fit)
+
+    def open_training(self, train_videos: list[Video]) -> tuple[Dataset, dict, Path]:
+        """The checked training dataset (recorded in ``train_data``), the training key (the config less its
+        test-time settings, the data's content hash) and the shared training folder."""
+        ds = open_disjoint_train_data(self.config.train_data, train_videos[0].root, self.name)
+        self.train_data = train_data_record(ds)
+        config = {k: v for k, v in result_key(self.config).items() if k not in self.test_time_fields + ("train_data",)}
+        key = {"config": config, "train_data": self.train_data["content_hash"]}
+        return ds, key, shared_train_dir(self.workdir, self.name, key)

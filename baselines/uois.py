@@ -27,15 +27,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from selfseg.baselines.semantic_instances import finished, result_key, save_final, train_loop
-from selfseg.baselines.sim_data import (GTFrames, SimSchedule, open_disjoint_train_data, shared_train_dir,
-                                        train_data_record, xyz_map)
+from selfseg.baselines.semantic_instances import finished, save_final, train_loop
+from selfseg.baselines.sim_data import GTFrames, SimSchedule, SimTrainedMethod, xyz_map
 from selfseg.dataset import Video
 from selfseg.method.features import foreground_box
 from selfseg.method.meanshift import absorb_small, split_components
 from selfseg.method.network import RGB_MEAN, RGB_STD, EmbeddingNet, NetConfig
 from selfseg.method.train import WEIGHTS, begin_training
-from selfseg.method_api import Method
 
 # Settings read only at test time: changing them reuses the trained networks.
 TEST_TIME_FIELDS = ("sigma_m", "n_seeds", "max_points", "meanshift_iters", "merge_m", "min_instance_px",
@@ -242,33 +240,28 @@ def refine(rrn: RefineNet, cfg: UoisConfig, rgb: np.ndarray, initial: np.ndarray
 
 
 # ---- the method -----------------------------------------------------------------------------------
-class UoisSim(Method):
+class UoisSim(SimTrainedMethod):
     """Baseline B: UOIS-Net-3D (DSN + RRN, no RICE) trained on a disjoint-object synthetic dataset."""
 
     name = "uois-sim"
     config_cls = UoisConfig
-    needs_ground_truth = False  # the *test* dataset's labels are never read; train_data is another dataset
-    needs_fit = True
+    test_time_fields = TEST_TIME_FIELDS
 
     def __init__(self, config=None, workdir: str | Path | None = None):
         super().__init__(config, workdir)
         self.dsn: EmbeddingNet | None = None
         self.rrn: RefineNet | None = None
-        self.train_data: dict | None = None  # provenance of the training dataset (set by fit)
 
     def fit(self, train_videos: list[Video]) -> None:
         cfg = self.config
-        ds = open_disjoint_train_data(cfg.train_data, train_videos[0].root, self.name)
-        self.train_data = train_data_record(ds)
-        base = {k: v for k, v in result_key(cfg).items() if k not in TEST_TIME_FIELDS + ("train_data",)}
-        out = shared_train_dir(self.workdir, self.name, {"config": base, "train_data": self.train_data["content_hash"]})
+        ds, base_key, out = self.open_training(train_videos)
         frames = None
         for name, make, sched, loss_fn in (
                 ("dsn", lambda: EmbeddingNet(cfg.dsn_net), cfg.dsn_train, lambda step: dsn_loss(
                     self.dsn, cfg, frames.batch(cfg.dsn_train.seed, step, cfg.dsn_train.batch_size))),
                 ("rrn", lambda: RefineNet(cfg.rrn_width), cfg.rrn_train,
                  lambda step: rrn_loss(self.rrn, frames, cfg, step))):
-            key = {"phase": name, "config": base, "train_data": self.train_data["content_hash"]}
+            key = {"phase": name, **base_key}
             phase_dir = out / name
             begin_training(sched)  # seeds the initial weights: build the network after it
             net = make()

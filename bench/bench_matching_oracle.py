@@ -29,13 +29,14 @@ from pathlib import Path
 import numpy as np
 
 from selfseg.config import load_config
-from selfseg.dataset import Dataset, transform_points
+from selfseg.dataset import Dataset
 from selfseg.eval.merges import merge_same_instance, relabel, segment_instances, summary
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels
 from selfseg.eval.table2 import alignment, matching_record, segment_scenes
 from selfseg.fileio import read_json, write_json
 from selfseg.method.pipeline import OursConfig, Segmentations3D
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, MATCHES_JSON, SceneData, make_pseudo_labels
+from selfseg.poses import transform_points
 
 EPS = 0.3  # weight of φ1 in the identity-oracle features (see the module docstring)
 T2_GRID = (0.9, 0.8, 0.7, 0.6, 0.5)  # criterion-2 thresholds at which the registered node pairs are counted

@@ -25,11 +25,13 @@ import cv2
 import numpy as np
 import torch
 
-from selfseg.dataset import Dataset, depth_to_png_units, write_inst, write_rgb
-from selfseg.deploy import plane_foreground, segment_main, train_model
+from selfseg.dataset import Dataset
 from selfseg.fileio import write_json
 from selfseg.importers import scale_K
-from selfseg.method.background import BackgroundConfig
+from selfseg.method.background import BackgroundConfig, frame_foreground
+from selfseg.method.cli import segment_main
+from selfseg.method.deploy import train_model
+from selfseg.writers import depth_to_png_units, write_inst, write_rgb
 
 W, H = 320, 240
 
@@ -45,7 +47,7 @@ def make_inputs(data: Path, folder: Path, n: int) -> Path:
         depth = cv2.resize(v.depth_m(f), (W, H), interpolation=cv2.INTER_NEAREST)
         write_rgb(folder / "rgb" / f"{f:06d}.png", cv2.resize(v.rgb(f), (W, H), interpolation=cv2.INTER_LINEAR))
         cv2.imwrite(str(folder / "depth" / f"{f:06d}.png"), depth_to_png_units(depth, 1.0))
-        write_inst(folder / "fg" / f"{f:06d}.png", plane_foreground(depth, K, BackgroundConfig()).astype(np.uint16))
+        write_inst(folder / "fg" / f"{f:06d}.png", frame_foreground(depth, K, BackgroundConfig()).astype(np.uint16))
     k_path = folder / "K.txt"
     k_path.write_text(" ".join(repr(float(x)) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])))
     return k_path

@@ -1,9 +1,12 @@
-"""``evaluate``: score a registered method, or one of your own, on a dataset under the paper's protocol.
+"""The evaluation stage's commands. ``evaluate``: score a registered method, or one of your own, on a dataset
+under the paper's protocol; ``evaluate3d``: Table II (:mod:`selfseg.eval.table2`).
 
     evaluate --method NAME|package.module:ClassName --data DIR [--config FILE] [--set key=value ...] [--folds 0,1,2]
              [--frame-stride 10] [--limit N] [--predictions DIR] [--name NAME] [--poses-given]
              [--method-needs-ground-truth] [--trust-method] [--replace]
              [--out results/] [--list-methods] [--executor local|ray] [--ray-address auto|HOST:PORT]
+    evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
+               [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--stats] [--quiet] [--executor local|ray]
 
 Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table. The method's code
 runs only in its own sandboxed process (:mod:`selfseg.eval.sandbox`), never in this one.
@@ -15,7 +18,6 @@ from __future__ import annotations
 import argparse
 import concurrent.futures as cf
 import errno
-import os
 import shutil
 import sys
 from pathlib import Path
@@ -23,11 +25,10 @@ from pathlib import Path
 from selfseg.config import ConfigError
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt, summarize_folds
-from selfseg.eval.protocol import (EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key, retire_run,
-                                   run_conflict, run_fold)
+from selfseg.eval.protocol import (RUN_SCORES_DIR, EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key,
+                                   retire_run, run_conflict, run_fold)
 from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
-from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, check_shared_folder, \
-    executor_config, make_executor
+from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, executor_config, shared_executor
 from selfseg.fileio import FileFormatError
 from selfseg.guard import GroundTruthAccessError
 from selfseg.registry import UnknownMethodError, get_method_class, method_names
@@ -115,11 +116,8 @@ def run_folds_as_tasks(where: ExecutorConfig, ref: MethodRef, config: dict, data
     ``ray_cpus_per_task`` CPUs). A task is what :func:`run_fold` does here: the method in its own sandboxed
     process (no network, so it cannot reach the cluster), then scoring and the result files, written to
     ``out`` (which every node must see). Returns {fold: record}; Ctrl-C cancels the tasks."""
-    ex = make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
-                       num_gpus=where.ray_gpus_per_task)
+    ex = shared_executor(where, out)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        check_shared_folder(ex, out)
         futures = {ex.submit(run_fold, ref, config, dataset, k, out, options, False): k for k in folds}
         records = {}
         for f in cf.as_completed(futures):
@@ -180,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
     if replaced is not None:
         shutil.rmtree(replaced, ignore_errors=True)
     print(format_table(options.name or ref.name, [records[k] for k in options.folds]))
-    print(f"results: {args.out / 'scores' / results_key(args.out, dataset) / (options.name or ref.name)}")
+    print("results: " + str(args.out / RUN_SCORES_DIR.format(dataset=results_key(args.out, dataset),
+                                                               name=options.name or ref.name)))
     return 0
 
 
@@ -202,6 +201,40 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"evaluate: error: {e.filename or args.out}: no space left; finished folds are kept", file=sys.stderr)
         return 1
+    return 2
+
+
+def evaluate3d_parser() -> argparse.ArgumentParser:
+    from selfseg.eval.table2 import ROWS, STATS_JSON
+
+    p = argparse.ArgumentParser(prog="evaluate3d", description="Table II: score the pipeline's 3-D segmentations of "
+                                "the reconstructed scenes against the ground-truth object points.")
+    p.add_argument("--data", type=Path, required=True, help="dataset folder")
+    p.add_argument("--config", type=Path, help="YAML file with the `ours` config (e.g. configs/ours-tiny.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value (repeatable)")
+    p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
+    p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
+    p.add_argument("--stats", action="store_true",
+                   help="instead of Table II: the data statistics (touching objects, LCCP and LCCP + SymSeg P/R/IoU, "
+                        "the gt-merging ceiling, segments per object, where recall goes, reconstruction error, "
+                        "camera distance, object size in pixels) per video and overall, written to "
+                        "OUT/" + STATS_JSON)
+    add_executor_arguments(p, "per-video stages (reconstruction, over-segmentation), matching and registrations")
+    return p
+
+
+def evaluate3d_main(argv: list[str] | None = None) -> int:
+    """``evaluate3d`` (:mod:`selfseg.eval.table2`, imported only here: ``evaluate`` never loads the pipeline)."""
+    from selfseg.eval import table2
+
+    try:
+        return table2.run(evaluate3d_parser().parse_args(argv))
+    except GroundTruthAccessError as e:
+        print(f"evaluate3d: error: the pipeline tried to read ground truth: {e}", file=sys.stderr)
+    except (ConfigError, DatasetError, FileFormatError, FileNotFoundError, ExecutorError) as e:
+        print(f"evaluate3d: error: {e}", file=sys.stderr)
     return 2
 
 

@@ -13,8 +13,6 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-SUMMARY_KEYS = ("n", "q25", "median", "q75", "max")
-
 
 def merge_same_instance(edges: np.ndarray, seg_inst: np.ndarray) -> np.ndarray:
     """Ground-truth merging, the most a matching step could merge: the group (int64, 0..G−1) of each

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfseg.dataset import Dataset, DatasetError, transform_points
+from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import BOOTSTRAP_SEED, N_BOOTSTRAP, bootstrap_ci, mean_metrics, per_video
 from selfseg.eval.metrics import OVERLAP_KEYS, PAPER_KEYS, segment_metrics
+from selfseg.poses import transform_points
 from selfseg.raycast import RaycastScene
 
 GT_MAX_DIST_M = 0.01

@@ -45,17 +45,20 @@ from tqdm import tqdm
 
 from selfseg.config import ConfigError, config_hash, from_dict, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, FORMAT_VERSION, RGB, SCENE_CAMERA, VIDEO_DIR, Dataset, DatasetError,
-                             read_inst, write_inst)
+                             read_inst)
 from selfseg.eval.aggregate import N_BOOTSTRAP, BOOTSTRAP_SEED, SegmentationEvaluator
 from selfseg.eval.sandbox import Job, MethodRef, Mount, check_mounts, raise_reply_error, run_method_process
 from selfseg.fileio import FileFormatError, atomic_dir, atomic_write_text, dumps_json, read_json, write_json
 from selfseg.guard import GroundTruthAccessError, guard_paths
 from selfseg.method_api import Method
+from selfseg.writers import write_inst
 
 SCHEMA_VERSION = 1
 N_FOLDS = 3
-SCORES_JSON = "scores/{dataset}/{name}/fold{fold}.json"
-FRAMES_JSONL = "scores/{dataset}/{name}/fold{fold}.frames.jsonl"
+SCORES_DIR = "scores"
+RUN_SCORES_DIR = SCORES_DIR + "/{dataset}/{name}"  # one run's folds
+SCORES_JSON = RUN_SCORES_DIR + "/fold{fold}.json"
+FRAMES_JSONL = RUN_SCORES_DIR + "/fold{fold}.frames.jsonl"
 PREDICTIONS_DIR = "predictions/{name}/{dataset}"
 PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"  # one frame's instance map in PREDICTIONS_DIR (and in `external`'s input)
 WORK_DIR = "work/{name}/{dataset}/fold{fold}"
@@ -109,7 +112,7 @@ def make_folds(dataset: Dataset, n_folds: int = N_FOLDS) -> list[list[str]]:
         folds = [sorted(str(v) for v in f) for f in stored]
         flat = [v for f in folds for v in f]
         if len(folds) != n_folds or sorted(flat) != dataset.video_ids:
-            raise DatasetError(f"{dataset.root / 'dataset_info.json'}: 'folds' must split the {len(dataset.video_ids)} "
+            raise DatasetError(f"{dataset.root / DATASET_INFO}: 'folds' must split the {len(dataset.video_ids)} "
                                f"videos into {n_folds} disjoint lists")
         return folds
     if len(dataset.video_ids) < n_folds:
@@ -170,10 +173,10 @@ def _check_prediction(pred, name: str, video_id: str, frame_id: int, shape: tupl
 def estimated_foreground(video, frame_id: int) -> np.ndarray:
     """bool H×W foreground of ``--foreground plane``: the frame's depth points above the support plane
     (RANSAC with the default :class:`BackgroundConfig`, the methods' own background stage)."""
-    from selfseg.baselines.semantic_instances import frame_foreground
-    from selfseg.method.background import BackgroundConfig
+    from selfseg.method.background import BackgroundConfig, frame_foreground
 
-    return frame_foreground(video, frame_id, BackgroundConfig())
+    return frame_foreground(video.depth_m(frame_id), video.K(frame_id), BackgroundConfig(),
+                            f"video {video.video_id} frame {frame_id}")
 
 
 def unlabeled_view(dataset: Dataset, out: Path, poses_given: bool) -> Path:
@@ -338,7 +341,7 @@ def results_key(out: Path, dataset: Dataset) -> str:
     """The folder name a dataset's results are filed under in ``out``: its name, or ``<name>-<content hash>``
     when ``scores/<name>/`` already holds results of a different dataset with the same name."""
     content = dataset.content_hash()
-    for path in sorted((Path(out) / "scores" / dataset.name).glob("*/fold*.json")):
+    for path in sorted((Path(out) / SCORES_DIR / dataset.name).glob("*/fold*.json")):
         if read_json(path).get("dataset", {}).get("content_hash") != content:
             return f"{dataset.name}-{content[:8]}"
     return dataset.name
@@ -365,7 +368,7 @@ def run_conflict(out: Path, dataset: Dataset, method: str, config, options: Eval
     name = options.name or method
     new = {"method": method, "config": to_dict(config),
            "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "folds"}}
-    for path in sorted((Path(out) / "scores" / results_key(out, dataset) / name).glob("fold*.json")):
+    for path in sorted((Path(out) / RUN_SCORES_DIR.format(dataset=results_key(out, dataset), name=name)).glob("fold*.json")):
         rec = read_json(path)
         old = {"method": rec.get("method"), "config": rec.get("config"),
                "options": {k: v for k, v in rec.get("options", {}).items() if k != "folds"}}
@@ -381,7 +384,7 @@ def retire_run(out: Path, dataset: Dataset, name: str) -> Path:
     run stays beside the new one's); returns the folder they went to, to delete once the new run finished."""
     fmt = {"dataset": results_key(out, dataset), "name": name, "fold": 0}
     trash = Path(out) / REPLACED_DIR.format(**fmt, pid=os.getpid())
-    for kind, folder in (("scores", Path(out) / Path(SCORES_JSON.format(**fmt)).parent),
+    for kind, folder in (("scores", Path(out) / RUN_SCORES_DIR.format(**fmt)),
                          ("predictions", Path(out) / PREDICTIONS_DIR.format(**fmt))):
         if folder.exists():
             trash.mkdir(parents=True, exist_ok=True)

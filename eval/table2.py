@@ -1,7 +1,5 @@
-"""``evaluate3d``: Table II, the 3-D segmentations of the reconstructed scenes scored against GT points.
-
-    evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
-               [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--stats] [--quiet] [--executor local|ray] [--ray-address ADDR]
+"""Table II (the ``evaluate3d`` command, :func:`selfseg.eval.cli.evaluate3d_main`): the 3-D segmentations
+of the reconstructed scenes scored against GT points.
 
 Rows (each a result record with ``task = "3d"``, named after the row):
 
@@ -30,8 +28,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import os
-import sys
 import time
 from pathlib import Path
 
@@ -39,17 +35,18 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, load_config
-from selfseg.dataset import Dataset, DatasetError, LabeledVideo, invert_T, transform_points
+from selfseg.dataset import Dataset, DatasetError, LabeledVideo
 from selfseg.eval.aggregate import fmt
 from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
 from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
-from selfseg.executor import ExecutorError, add_executor_arguments, check_shared_folder, executor_config, make_executor
-from selfseg.fileio import FileFormatError, write_json
-from selfseg.guard import GroundTruthAccessError, ground_truth_forbidden
+from selfseg.executor import executor_config, shared_executor
+from selfseg.fileio import write_json
+from selfseg.guard import ground_truth_forbidden
 from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
 from selfseg.method.recon_stage import ReconStage
+from selfseg.poses import invert_T, transform_points
 
 GT_MERGING = "gt-merging"  # lccp+symseg with the ground truth's merges (a ceiling for matching)
 ROWS = (*ROWS_3D, GT_MERGING)
@@ -239,48 +236,20 @@ def format_table(records: list[dict]) -> str:
     return "\n".join([f"Table II (3-D points) on {records[0]['dataset']['name']}", line(head), *map(line, rows)])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="evaluate3d", description="Table II: score the pipeline's 3-D segmentations of "
-                                "the reconstructed scenes against the ground-truth object points.")
-    p.add_argument("--data", type=Path, required=True, help="dataset folder")
-    p.add_argument("--config", type=Path, help="YAML file with the `ours` config (e.g. configs/ours-tiny.yaml)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value (repeatable)")
-    p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows (default {','.join(ROWS)})")
-    p.add_argument("--out", type=Path, default=Path("results"), help="results folder (default results/)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars while scoring (pipeline stages keep theirs)")
-    p.add_argument("--stats", action="store_true",
-                   help="instead of Table II: the data statistics (touching objects, LCCP and LCCP + SymSeg P/R/IoU, "
-                        "the gt-merging ceiling, segments per object, where recall goes, reconstruction error, "
-                        "camera distance, object size in pixels) per video and overall, written to "
-                        "OUT/" + STATS_JSON)
-    add_executor_arguments(p, "per-video stages (reconstruction, over-segmentation), matching and registrations")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        dataset = Dataset(args.data)
-        config = load_config(OursConfig, args.config, args.overrides)
-        rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
-        where = executor_config(args, args.config)
-        run = (lambda ex: run_stats(dataset, config, args.out, executor=ex)) if args.stats else \
-            (lambda ex: run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=ex))
-        if not where.distributed:
-            result = run(None)
-        else:
-            with make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
-                               num_gpus=where.ray_gpus_per_task) as executor:
-                args.out.mkdir(parents=True, exist_ok=True)
-                check_shared_folder(executor, args.out)
-                result = run(executor)
-    except GroundTruthAccessError as e:
-        print(f"evaluate3d: error: the pipeline tried to read ground truth: {e}", file=sys.stderr)
-        return 2
-    except (ConfigError, DatasetError, FileFormatError, FileNotFoundError, ExecutorError) as e:
-        print(f"evaluate3d: error: {e}", file=sys.stderr)
-        return 2
+def run(args: argparse.Namespace) -> int:
+    """The ``evaluate3d`` command on parsed arguments (:func:`selfseg.eval.cli.evaluate3d_parser`): Table II, or
+    with ``--stats`` the data statistics, computed and printed."""
+    dataset = Dataset(args.data)
+    config = load_config(OursConfig, args.config, args.overrides)
+    rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
+    where = executor_config(args, args.config)
+    compute = (lambda ex: run_stats(dataset, config, args.out, executor=ex)) if args.stats else \
+        (lambda ex: run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=ex))
+    if not where.distributed:
+        result = compute(None)
+    else:
+        with shared_executor(where, args.out) as executor:
+            result = compute(executor)
     if args.stats:
         print(format_stats({**result, "dataset": dataset.name}))
         print("statistics: " + str(args.out / STATS_JSON.format(dataset=dataset.name, config_hash=result["config_hash"])))
@@ -293,7 +262,3 @@ def main(argv: list[str] | None = None) -> int:
     print("results: " + ", ".join(str(args.out / SCORES_JSON.format(dataset=dataset.name, name=r["name"], fold=FOLD))
                                   for r in records))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -23,14 +23,15 @@ from tqdm import tqdm
 
 from selfseg.config import ConfigError, from_dict, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_INFO, RGB, SCENE_CAMERA, SCENE_GT,
-                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str, write_dataset_info)
-from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, make_executor
+                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str)
+from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, executor_config, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.determinism import reexec_pinned
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
 from selfseg.manifest import MANIFEST, verify, write_manifest
+from selfseg.writers import write_dataset_info
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
 EXIT_BAD_INPUT = 2
@@ -273,10 +274,9 @@ def open_executor(args: argparse.Namespace) -> cf.Executor | None:
         raise GenerateError(f"--workers must be at least 1, got {args.workers}")
     if args.executor == "local" and args.ray_address is None and args.workers == 1:
         return None
-    if args.ray_cpus_per_task <= 0 or args.ray_gpus_per_task < 0:
-        raise ExecutorError("--ray-cpus-per-task must be > 0 and --ray-gpus-per-task ≥ 0")
-    return make_executor(args.executor, args.ray_address, args.workers, num_cpus=args.ray_cpus_per_task,
-                         num_gpus=args.ray_gpus_per_task,
+    where = executor_config(args, None)
+    return make_executor(where.kind, where.ray_address, args.workers, num_cpus=where.ray_cpus_per_task,
+                         num_gpus=where.ray_gpus_per_task,
                          mp_context=multiprocessing.get_context("spawn"))  # bpy is not fork-safe
 
 

@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from selfseg.dataset import MODEL_PLY, MODELS_INFO, transform_points
+from selfseg.dataset import MODEL_PLY, MODELS_INFO
 from selfseg.fileio import atomic_write_bytes, write_json
 from selfseg.generate.determinism import snap
 from selfseg.generate.textures import atlas, make_texture, seed_from_name
+from selfseg.poses import transform_points
 
 SECTIONS = 48  # angular resolution of round parts
 TEXTURE_SIZE = (256, 256)  # (height, width) of one part's texture

@@ -12,14 +12,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.dataset import VideoWriter, invert_T, transform_points
 from selfseg.fileio import atomic_dir
 from selfseg.generate.determinism import snap, snap_pose
 from selfseg.generate.objects import ObjectModel
 from selfseg.generate.physics import drop_objects
 from selfseg.generate.presets import GenerateConfig, OrbitConfig
 from selfseg.generate.render import BlenderScene, intrinsics, sample_appearance
+from selfseg.poses import invert_T, transform_points
 from selfseg.raycast import look_at
+from selfseg.writers import VideoWriter
 
 STAGES = ("physics", "blender_setup", "render_image", "render_gt", "write")
 

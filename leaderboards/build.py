@@ -32,7 +32,7 @@ from selfseg.dataset import Dataset, DatasetError, read_inst
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.metrics import METRIC_KEYS, segment_metrics
 from selfseg.eval.points import POINT_KEYS
-from selfseg.eval.protocol import PREDICTIONS_DIR, SCHEMA_VERSION
+from selfseg.eval.protocol import PREDICTION_PNG, PREDICTIONS_DIR, SCHEMA_VERSION, SCORES_DIR, SCORES_JSON
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, hash_json, read_json
 
 BEGIN = "<!-- BEGIN GENERATED (selfseg.leaderboards.build; edits inside are overwritten) -->"
@@ -77,7 +77,7 @@ def load_results(results: Path) -> dict[str, dict[tuple[str, str], list[dict]]]:
     share a name). Folds of one run name whose config, dataset content or options differ are never
     averaged: each such run becomes its own row, ``name [run key]``."""
     out: dict[str, dict[tuple[str, str], list[dict]]] = defaultdict(lambda: defaultdict(list))
-    for path in sorted((Path(results) / "scores").glob("*/*/fold*.json")):
+    for path in sorted(Path(results).glob(SCORES_JSON.format(dataset="*", name="*", fold="*"))):
         rec = read_json(path)
         if rec.get("schema_version") != SCHEMA_VERSION:
             raise FileFormatError(f"{path}: schema_version {rec.get('schema_version')!r}, expected {SCHEMA_VERSION}")
@@ -257,7 +257,7 @@ def montage(groups: dict, results: Path) -> bytes | None:
         tiles = [_tile(labeled.rgb(fid), f"{vid}/{fid:06d}"), _tile(_colour_gt(gt, pal), "ground truth")]
         for name, recs in runs:
             label = _fold_label(groups, "2d", name)
-            path = _prediction_dir(results, recs[0]) / f"{vid}/{fid:06d}.png"
+            path = _prediction_dir(results, recs[0]) / PREDICTION_PNG.format(video_id=vid, frame_id=fid)
             if path.is_file():
                 tiles.append(_tile(_colour_pred(read_inst(path), gt, pal), label))
             else:  # not a test frame of this run's folds
@@ -321,8 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results", type=Path, default=Path("results"), help="results folder of `evaluate --out`")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="where the markdown goes")
     args = p.parse_args(argv)
-    if not (args.results / "scores").is_dir():
-        print(f"build: error: {args.results / 'scores'}: no results folder (run `evaluate` first)", file=sys.stderr)
+    if not (args.results / SCORES_DIR).is_dir():
+        print(f"build: error: {args.results / SCORES_DIR}: no results folder (run `evaluate` first)", file=sys.stderr)
         return 2
     try:
         for path in build(args.results, args.out):

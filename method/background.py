@@ -116,6 +116,25 @@ def remove_support_plane(points_w: np.ndarray, normals_w: np.ndarray | None, cfg
     return keep, plane
 
 
+def frame_foreground(depth_m: np.ndarray, K: np.ndarray, cfg: BackgroundConfig, where: str = "frame") -> np.ndarray:
+    """bool H×W: pixels whose depth point (back-projected with K, camera frame) stands above the support
+    plane (:func:`remove_support_plane` without an up hint: the largest plane); every pixel with depth,
+    and a warning naming ``where``, if no plane is found."""
+    from tqdm import tqdm
+
+    from selfseg.raycast import backproject
+
+    pts, vu = backproject(depth_m, K)
+    out = np.zeros(depth_m.shape, bool)
+    try:
+        keep, _ = remove_support_plane(pts, None, cfg, where=where)
+    except BackgroundError as e:
+        tqdm.write(f"warning: {e}; using every pixel with depth as foreground")
+        keep = np.ones(len(pts), bool)
+    out[vu[keep, 0], vu[keep, 1]] = True
+    return out
+
+
 def plane_pixels(depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, plane: np.ndarray,
                  margin_m: float) -> np.ndarray:
     """bool H×W: pixels whose measured point (depth in m, K in the OpenCV convention) lies lower

@@ -36,7 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import to_dict
-from selfseg.dataset import Video, read_inst, write_inst
+from selfseg.dataset import Video, read_inst
 from selfseg.fileio import hash_json, read_json, write_json
 from selfseg.guard import ground_truth_forbidden
 from selfseg.method.background import BackgroundConfig
@@ -44,11 +44,12 @@ from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConf
 from selfseg.method.overseg import OversegConfig, oversegment
 from selfseg.method.projection import project_labels
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, PseudoLabelConfig, SceneData, make_pseudo_labels
-from selfseg.method.reconstruct import ReconConfig
 from selfseg.method.recon_stage import ReconStage, load_recon, run_recon_stage
+from selfseg.method.reconstruct import ReconConfig
 from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
 from selfseg.method.train import FrameLabelSource, TrainConfig, load_embedding_net, train_embedding
 from selfseg.stages import STAGE_FILE, StageCache
+from selfseg.writers import write_inst
 
 # Files of the stages this module owns (recon's are in selfseg.method.recon_stage), relative to the stage folder.
 SEGMENTS_NPZ = "segments.npz"  # overseg: the segment graph (segment per reconstructed point, −1 = none; edges; sizes)

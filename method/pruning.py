@@ -29,9 +29,9 @@ from typing import Callable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.dataset import invert_T
 from selfseg.method.matching import PairMatch
 from selfseg.method.registration import RegistrationError, precision_recall, register
+from selfseg.poses import invert_T
 
 
 @dataclass

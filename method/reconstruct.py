@@ -28,7 +28,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from selfseg.dataset import Video, invert_T, transform_points
+from selfseg.dataset import Video
+from selfseg.poses import invert_T, transform_points
 from selfseg.raycast import backproject
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from selfseg.dataset import transform_points
+from selfseg.poses import transform_points
 
 MIN_POINTS = 8  # fewer downsampled points than this cannot be registered meaningfully
 

@@ -71,13 +71,10 @@ class OptimSchedule:
 
 
 @dataclass
-class TrainConfig:
-    """Training schedule and augmentation. Crop sizes in pixels (H, W), after resizing and scaling."""
+class TrainConfig(OptimSchedule):
+    """Training schedule (:class:`OptimSchedule`) and augmentation. Crop sizes in pixels (H, W), after
+    resizing and scaling."""
 
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 1e-3  # Adam(W), polynomial decay (power 0.9) to 0
-    weight_decay: float = 1e-4
     image_size: int = 320  # frames are first resized so their longer side is this (0 = keep)
     crop: tuple[int, ...] = (192, 256)  # random crop H, W (padded with ignore if the image is smaller)
     scale_range: tuple[float, ...] = (0.75, 1.25)  # random rescale factor before cropping
@@ -106,15 +103,9 @@ class TrainConfig:
     negatives: str = "image"
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
-    seed: int = 0
-    checkpoint_every: int = 200
-    device: str = "auto"  # "auto" → cuda if available, else cpu
-    threads: int = 1  # torch CPU threads; results are identical for the same value; 0 = torch's default
-    # (core count or OMP_NUM_THREADS: not reproducible across environments)
 
     def __post_init__(self):
-        if self.steps < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
-            raise ValueError("steps, batch_size and checkpoint_every must be ≥ 1")
+        super().__post_init__()
         if len(self.crop) != 2 or min(self.crop) < 16:
             raise ValueError(f"crop must be (H, W) with both ≥ 16, got {self.crop}")
         if len(self.scale_range) != 2 or not 0 < self.scale_range[0] <= self.scale_range[1]:

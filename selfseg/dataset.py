@@ -1,4 +1,5 @@
-"""The selfseg dataset format: the one module that owns path templates, readers and writers.
+"""The selfseg dataset format: the one module that owns the path templates, and its readers
+(writers: :mod:`selfseg.writers`; pose maths: :mod:`selfseg.poses`).
 
 On disk (BOP scene layout, so bop_toolkit-style readers work)::
 
@@ -33,28 +34,37 @@ from typing import Any
 
 import numpy as np
 
-from selfseg.fileio import FileFormatError  # noqa: F401  (re-exported for callers)
-from selfseg.fileio import atomic_write_bytes, read_json, write_json
+from selfseg.fileio import read_json
 from selfseg.manifest import content_hash
+from selfseg.poses import invert_T, rt_to_T
 
 FORMAT_VERSION = 1
 DEPTH_SCALE_MM = 0.1  # millimetres per unit of the depth PNG: 0.1 mm steps, up to 6.55 m
 
-# ---- path templates (relative to the dataset root) -----------------------------------------
+# ---- path templates: inside a video folder ---------------------------------------------------
+MASK_INST_DIR = "mask_inst"
+FRAME_RGB = "rgb/{frame_id:06d}.png"
+FRAME_DEPTH = "depth/{frame_id:06d}.png"
+FRAME_MASK_INST = MASK_INST_DIR + "/{frame_id:06d}.png"
+CAMERA_JSON = "scene_camera.json"
+GT_JSON = "scene_gt.json"
+INFO_JSON = "scene_info.json"
+
+# ---- path templates: relative to the dataset root ---------------------------------------------
 DATASET_INFO = "dataset_info.json"
 MODELS_DIR = "models"
-MODEL_PLY = "models/obj_{obj_id:06d}.ply"
-MODELS_INFO = "models/models_info.json"
+MODEL_PLY = MODELS_DIR + "/obj_{obj_id:06d}.ply"
+MODELS_INFO = MODELS_DIR + "/models_info.json"
 VIDEOS_DIR = "videos"
-VIDEO_DIR = "videos/{video_id}"
-RGB = "videos/{video_id}/rgb/{frame_id:06d}.png"
-DEPTH = "videos/{video_id}/depth/{frame_id:06d}.png"
-MASK_INST = "videos/{video_id}/mask_inst/{frame_id:06d}.png"
-SCENE_CAMERA = "videos/{video_id}/scene_camera.json"
-SCENE_GT = "videos/{video_id}/scene_gt.json"
-SCENE_INFO = "videos/{video_id}/scene_info.json"
+VIDEO_DIR = VIDEOS_DIR + "/{video_id}"
+RGB = VIDEO_DIR + "/" + FRAME_RGB
+DEPTH = VIDEO_DIR + "/" + FRAME_DEPTH
+MASK_INST = VIDEO_DIR + "/" + FRAME_MASK_INST
+SCENE_CAMERA = VIDEO_DIR + "/" + CAMERA_JSON
+SCENE_GT = VIDEO_DIR + "/" + GT_JSON
+SCENE_INFO = VIDEO_DIR + "/" + INFO_JSON
 
-GROUND_TRUTH_NAMES = ("mask_inst", "scene_gt.json", "scene_info.json")
+GROUND_TRUTH_NAMES = (MASK_INST_DIR, GT_JSON, INFO_JSON)
 
 
 def video_id_str(index: int) -> str:
@@ -65,7 +75,7 @@ class DatasetError(ValueError):
     """Bad or inconsistent dataset content; the message names the file and the problem."""
 
 
-# ---- image readers and writers --------------------------------------------------------------
+# ---- image readers ------------------------------------------------------------------------
 def _read_bytes(path: Path) -> bytes:
     # Reads go through Python's open() so that the ground-truth guard (an audit hook) sees them.
     try:
@@ -113,80 +123,6 @@ def read_inst(path: str | os.PathLike) -> np.ndarray:
     return raw.astype(np.uint16)
 
 
-def _encode_png(path: Path, img: np.ndarray) -> None:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", img)
-    if not ok:
-        raise DatasetError(f"{path}: PNG encoding failed")
-    atomic_write_bytes(path, buf.tobytes())
-
-
-def write_rgb(path: str | os.PathLike, rgb: np.ndarray) -> None:
-    """uint8 H×W×3 RGB → 8-bit PNG (atomic)."""
-    rgb = np.asarray(rgb)
-    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"{path}: rgb must be uint8 H×W×3, got {rgb.dtype} {rgb.shape}")
-    _encode_png(Path(path), np.ascontiguousarray(rgb[:, :, ::-1]))
-
-
-def depth_to_png_units(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE_MM) -> np.ndarray:
-    """Quantise metres to uint16 PNG units (round to nearest); 0 and inf become 0 (no measurement).
-
-    NaN is refused: a renderer or sensor must say explicitly which pixels have no depth.
-    """
-    d = np.asarray(depth_m, dtype=np.float64)
-    if np.isnan(d).any():
-        raise ValueError(f"depth contains {int(np.isnan(d).sum())} NaN values; use 0 for 'no measurement'")
-    units = np.where(np.isfinite(d) & (d > 0), np.rint(d * 1000.0 / depth_scale), 0.0)
-    if units.max(initial=0) > 65535:
-        raise ValueError(f"depth {d[np.isfinite(d)].max():.3f} m exceeds the uint16 range at depth_scale={depth_scale}")
-    return units.astype(np.uint16)
-
-
-def write_depth_m(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE_MM) -> None:
-    """float metres → uint16 PNG with mm = value * depth_scale (atomic)."""
-    _encode_png(Path(path), depth_to_png_units(depth_m, depth_scale))
-
-
-def write_inst(path: str | os.PathLike, inst: np.ndarray) -> None:
-    """Integer instance map (0 = background) → uint16 PNG (atomic)."""
-    inst = np.asarray(inst)
-    if inst.ndim != 2 or not np.issubdtype(inst.dtype, np.integer) or inst.min(initial=0) < 0 or inst.max(initial=0) > 65535:
-        raise ValueError(f"{path}: instance map must be a 2-D array of ids in [0, 65535], got {inst.dtype} {inst.shape}")
-    _encode_png(Path(path), inst.astype(np.uint16))
-
-
-# ---- poses ---------------------------------------------------------------------------------
-def rt_to_T(R9: Any, t_mm: Any) -> np.ndarray:
-    """BOP rotation (9, row-major) and translation (mm) → 4×4 pose in metres."""
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(R9, dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = np.asarray(t_mm, dtype=np.float64).reshape(3) / 1000.0
-    return T
-
-
-def T_to_rt(T: np.ndarray) -> tuple[list[float], list[float]]:
-    """4×4 pose in metres → BOP (R as 9 floats, t as 3 floats in mm)."""
-    T = np.asarray(T, dtype=np.float64)
-    return T[:3, :3].reshape(-1).tolist(), (T[:3, 3] * 1000.0).tolist()
-
-
-def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Apply a 4×4 rigid transform ``T_a_b`` to N×3 points in frame b; returns them in frame a (float64)."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
-
-
-def invert_T(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4×4 transform."""
-    Ti = np.eye(4)
-    R = T[:3, :3]
-    Ti[:3, :3] = R.T
-    Ti[:3, 3] = -R.T @ T[:3, 3]
-    return Ti
-
-
 # ---- camera records -------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CameraFrame:
@@ -195,19 +131,6 @@ class CameraFrame:
     K: np.ndarray  # 3×3
     depth_scale: float  # mm per depth-PNG unit
     T_world_cam: np.ndarray  # 4×4, metres
-
-
-def camera_record(K: np.ndarray, T_world_cam: np.ndarray, depth_scale: float = DEPTH_SCALE_MM) -> dict:
-    """One scene_camera.json entry."""
-    R, t = T_to_rt(invert_T(T_world_cam))
-    return {"cam_K": np.asarray(K, dtype=np.float64).reshape(-1).tolist(), "depth_scale": float(depth_scale),
-            "cam_R_w2c": R, "cam_t_w2c": t}
-
-
-def gt_record(obj_id: int, inst_id: int, T_cam_model: np.ndarray) -> dict:
-    """One scene_gt.json entry."""
-    R, t = T_to_rt(T_cam_model)
-    return {"obj_id": int(obj_id), "inst_id": int(inst_id), "cam_R_m2c": R, "cam_t_m2c": t}
 
 
 def validate_K(K: np.ndarray, width: int, height: int, where: str) -> None:
@@ -376,7 +299,7 @@ class Dataset:
         self.name: str = self.info.get("name", self.root.name)
         vdir = self.root / VIDEOS_DIR
         self.video_ids: list[str] = sorted(
-            p.name for p in vdir.iterdir() if (p / "scene_camera.json").is_file()) if vdir.is_dir() else []
+            p.name for p in vdir.iterdir() if (p / CAMERA_JSON).is_file()) if vdir.is_dir() else []
         if not self.video_ids:
             raise DatasetError(f"{vdir}: the dataset has no videos")
 
@@ -414,48 +337,3 @@ class Dataset:
     def content_hash(self) -> str:
         """The dataset's identity: a hash of every file's size and content (:mod:`selfseg.manifest`)."""
         return content_hash(self.root)
-
-
-# ---- writers for generators -------------------------------------------------------------------
-def write_dataset_info(root: str | os.PathLike, info: dict) -> None:
-    """Write dataset_info.json, stamping the format version."""
-    write_json(Path(root) / DATASET_INFO, {**info, "format_version": FORMAT_VERSION})
-
-
-class VideoWriter:
-    """Writes one video folder in the dataset format (frames first, then the JSON records)."""
-
-    def __init__(self, video_dir: str | os.PathLike):
-        self.dir = Path(video_dir)
-        self.cameras: dict[str, dict] = {}
-        self.gts: dict[str, list] = {}
-
-    def _frame(self, sub: str, frame_id: int) -> Path:
-        return self.dir / sub / f"{frame_id:06d}.png"
-
-    def write_frame(self, frame_id: int, rgb: np.ndarray, depth_m: np.ndarray, inst: np.ndarray | None,
-                    K: np.ndarray, T_world_cam: np.ndarray, objects: list[dict] | None,
-                    depth_scale: float = DEPTH_SCALE_MM) -> None:
-        """objects: [{obj_id, inst_id, T_cam_model (4×4 m)}] visible or not. An unlabeled video
-        (recorded data) passes ``inst=None`` and ``objects=None``: no ground truth is written."""
-        write_rgb(self._frame("rgb", frame_id), rgb)
-        write_depth_m(self._frame("depth", frame_id), depth_m, depth_scale)
-        if inst is not None:
-            write_inst(self._frame("mask_inst", frame_id), inst)
-        self.cameras[str(frame_id)] = camera_record(K, T_world_cam, depth_scale)
-        if objects is not None:
-            self.gts[str(frame_id)] = [gt_record(o["obj_id"], o["inst_id"], o["T_cam_model"]) for o in objects]
-
-    def finish(self, scene_info: dict | None) -> None:
-        """Write the JSON records (ground truth only if frames had labels); scene_camera.json last,
-        since it marks a complete video."""
-        if scene_info is not None:
-            write_json(self.dir / "scene_gt.json", self.gts)
-            write_json(self.dir / "scene_info.json", scene_info)
-        write_json(self.dir / "scene_camera.json", self.cameras)
-
-
-def open_dataset(root: str | os.PathLike) -> Dataset:
-    """Open a dataset folder, with clear errors for anything that is not one."""
-    return Dataset(root)
-

@@ -200,6 +200,20 @@ def make_executor(kind: str = "local", address: str | None = None, workers: int 
     return RayExecutor(address, workers, num_cpus, num_gpus)
 
 
+def shared_executor(where: ExecutorConfig, out: str | os.PathLike) -> cf.Executor:
+    """The executor ``where`` names (a Ray instance it starts gets this machine's CPUs), once a task of it has
+    written into ``out`` (created here) and this machine has read that back; the caller shuts it down."""
+    ex = make_executor(where.kind, where.ray_address, os.cpu_count() or 1, num_cpus=where.ray_cpus_per_task,
+                       num_gpus=where.ray_gpus_per_task)
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        check_shared_folder(ex, out)
+    except BaseException:
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    return ex
+
+
 def _write_probe(path: str, token: str) -> str:
     """Task body of the shared-folder probe: write ``token`` to ``path`` if its folder exists there (nothing is
     created); returns the worker's host name."""

@@ -1,4 +1,5 @@
-"""``import_videos``: convert recorded RGB-D videos into the selfseg dataset format, with or without labels.
+"""Recorded RGB-D videos → the selfseg dataset format, with or without labels (the ``import_videos`` command:
+:mod:`selfseg.cli`).
 
     import_videos --format ycb-video|tum|folder SRC [SRC ...] --out DIR [--frame-step N]
                   [--resolution WxH] [--intrinsics K.txt | --camera freiburg1] [--depth-scale MM]
@@ -25,14 +26,13 @@ resizes colour (area), depth and labels (nearest) and scales K. Without labels t
 poses are the dataset's (YCB-Video has none per frame: identity; TUM: ``groundtruth.txt`` if present).
 
 Each video is written into a temporary folder and renamed when complete, so an interrupted import
-resumes at the first missing video; all writing goes through :class:`selfseg.dataset.VideoWriter`.
+resumes at the first missing video; all writing goes through :class:`selfseg.writers.VideoWriter`.
 Bad input prints one line naming the file and the problem and exits with status 2.
 """
 from __future__ import annotations
 
 import argparse
 import re
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,10 +40,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.dataset import (DATASET_INFO, VIDEO_DIR, Dataset, DatasetError, VideoWriter, read_depth_m, read_inst,
-                             read_rgb, validate_K, video_id_str, write_dataset_info)
-from selfseg.fileio import FileFormatError, atomic_dir, read_json
+from selfseg.dataset import (CAMERA_JSON, DATASET_INFO, MASK_INST_DIR, VIDEO_DIR, Dataset, DatasetError, read_depth_m,
+                             read_inst, read_rgb, validate_K, video_id_str)
+from selfseg.fileio import atomic_dir, read_json
 from selfseg.manifest import write_manifest
+from selfseg.writers import VideoWriter, write_dataset_info
 
 IMPORTER_VERSION = 1
 FORMATS = ("ycb-video", "tum", "folder")
@@ -102,7 +103,8 @@ def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K2
 
 
-def _images(folder: Path) -> dict[str, Path]:
+def image_files(folder: Path) -> dict[str, Path]:
+    """The folder's colour/depth/mask images by stem (``IMAGE_EXTS``), sorted; {} if it is no folder."""
     return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_EXTS} if folder.is_dir() else {}
 
 
@@ -116,7 +118,7 @@ def is_video(fmt: str, folder: Path) -> bool:
 
 
 def folder_video(src: Path, K_override: np.ndarray | None, depth_scale_mm: float) -> SourceVideo:
-    rgbs, depths, masks = _images(src / "rgb"), _images(src / "depth"), _images(src / "mask_inst")
+    rgbs, depths, masks = image_files(src / "rgb"), image_files(src / "depth"), image_files(src / "mask_inst")
     if not rgbs:
         raise DatasetError(f"{src / 'rgb'}: no .png/.jpg frames")
     missing = [s for s in rgbs if s not in depths]
@@ -318,36 +320,13 @@ def import_video(video: SourceVideo, out_dir: Path, frame_step: int, resolution:
         info = None
         if video.labeled:
             ids = video.instances if video.instances is not None else {
-                int(i): int(i) for i in sorted({int(v) for p in (tmp / "mask_inst").iterdir() for v in np.unique(read_inst(p))} - {0})}
+                int(i): int(i) for i in sorted({int(v) for p in (tmp / MASK_INST_DIR).iterdir() for v in np.unique(read_inst(p))} - {0})}
             info = {"instances": {str(k): v for k, v in sorted(ids.items())}, "source": str(video.source)}
         writer.finish(info)
 
 
-def _parse_resolution(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not m or int(m[1]) < 1 or int(m[2]) < 1:
-        raise argparse.ArgumentTypeError(f"--resolution must look like 320x240, got {text!r}")
-    return int(m[1]), int(m[2])
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="import_videos", description="Convert recorded RGB-D videos (YCB-Video, TUM "
-                                "RGB-D or a plain folder) into a selfseg dataset, with or without labels.")
-    p.add_argument("--format", required=True, choices=FORMATS)
-    p.add_argument("sources", nargs="+", type=Path, metavar="SRC", help="a video folder or a folder of them")
-    p.add_argument("--out", required=True, type=Path, help="dataset folder to write")
-    p.add_argument("--name", help="dataset name (default: the --out folder name)")
-    p.add_argument("--frame-step", type=int, default=1, help="keep every N-th frame (default 1)")
-    p.add_argument("--resolution", type=_parse_resolution, help="resize every frame to WxH (intrinsics scaled)")
-    p.add_argument("--intrinsics", type=Path, help="file with 'fx fy cx cy' or a 3×3 matrix (overrides the source's)")
-    p.add_argument("--camera", choices=sorted(TUM_CAMERAS), help="TUM camera name for its published intrinsics")
-    p.add_argument("--depth-scale", type=float, default=1.0, help="folder format: millimetres per depth unit (default 1)")
-    p.add_argument("--max-dt-s", type=float, default=0.02, help="TUM: max colour–depth time difference (default 0.02 s)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    return p
-
-
 def run(args: argparse.Namespace) -> int:
+    """The ``import_videos`` command on parsed arguments (:func:`selfseg.cli.import_videos_parser`)."""
     if args.frame_step < 1:
         raise DatasetError(f"--frame-step must be ≥ 1, got {args.frame_step}")
     if not args.depth_scale > 0:
@@ -377,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
     done = 0
     for i, video in enumerate(tqdm(videos, desc="import_videos", unit="video", disable=args.quiet)):
         vdir = out / VIDEO_DIR.format(video_id=video_id_str(i))
-        if (vdir / "scene_camera.json").is_file():
+        if (vdir / CAMERA_JSON).is_file():
             done += 1
             continue
         import_video(video, vdir, args.frame_step, args.resolution, size, progress=not args.quiet)
@@ -387,15 +366,3 @@ def run(args: argparse.Namespace) -> int:
           f"manifest hash {write_manifest(out)}")
     return 0
 
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except (DatasetError, FileFormatError, FileExistsError) as e:
-        print(f"import_videos: error: {e}", file=sys.stderr)
-    return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

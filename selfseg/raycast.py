@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfseg.dataset import transform_points
+from selfseg.poses import transform_points
 
 
 @dataclass

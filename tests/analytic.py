@@ -1,6 +1,6 @@
 """Small analytic datasets for tests: trimesh shapes on a table, rendered by ray casting.
 
-They are written in the real dataset format (through :class:`selfseg.dataset.VideoWriter`),
+They are written in the real dataset format (through :class:`selfseg.writers.VideoWriter`),
 so tests exercise the same readers as generated data, without Blender.
 """
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from selfseg.dataset import VideoWriter, write_dataset_info
 from selfseg.raycast import RaycastScene, look_at
+from selfseg.writers import VideoWriter, write_dataset_info
 
 TABLE_ID = 65535  # internal id of the table in the ray-cast scene; written as 0 (background)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from selfseg import dataset as ds
-from selfseg import guard
+from selfseg import guard, poses, writers
 from selfseg.config import ConfigError, config_hash, load_config
 
 
@@ -14,12 +14,12 @@ def test_depth_roundtrip_quantisation(tmp_path):
     depth = rng.uniform(0.2, 3.0, (12, 16)).astype(np.float32)
     depth[0, 0] = 0.0
     p = tmp_path / "d.png"
-    ds.write_depth_m(p, depth)
+    writers.write_depth_m(p, depth)
     back = ds.read_depth_m(p, ds.DEPTH_SCALE_MM)
     assert back[0, 0] == 0
     assert np.max(np.abs(back - depth)) <= ds.DEPTH_SCALE_MM / 1000 / 2 + 1e-6  # half a quantisation step
     again = tmp_path / "d2.png"
-    ds.write_depth_m(again, back)
+    writers.write_depth_m(again, back)
     assert np.array_equal(ds.read_depth_m(again, ds.DEPTH_SCALE_MM), back)  # exact after one round
 
 
@@ -27,7 +27,7 @@ def test_nan_depth_refused(tmp_path):
     d = np.ones((4, 4), np.float32)
     d[1, 2] = np.nan
     with pytest.raises(ValueError, match="NaN"):
-        ds.write_depth_m(tmp_path / "d.png", d)
+        writers.write_depth_m(tmp_path / "d.png", d)
     assert not (tmp_path / "d.png").exists()
 
 
@@ -35,8 +35,8 @@ def test_rgb_and_inst_roundtrip(tmp_path):
     rng = np.random.default_rng(1)
     rgb = rng.integers(0, 256, (8, 10, 3), dtype=np.uint8)
     inst = rng.integers(0, 70000 // 2, (8, 10)).astype(np.uint16)
-    ds.write_rgb(tmp_path / "c.png", rgb)
-    ds.write_inst(tmp_path / "i.png", inst)
+    writers.write_rgb(tmp_path / "c.png", rgb)
+    writers.write_inst(tmp_path / "i.png", inst)
     assert np.array_equal(ds.read_rgb(tmp_path / "c.png"), rgb)
     assert np.array_equal(ds.read_inst(tmp_path / "i.png"), inst)
 
@@ -44,9 +44,9 @@ def test_rgb_and_inst_roundtrip(tmp_path):
 def test_pose_roundtrip():
     from selfseg.raycast import look_at
     T = look_at([0.3, -0.2, 0.5], [0, 0, 0])
-    R, t = ds.T_to_rt(T)
-    assert np.allclose(ds.rt_to_T(R, t), T)
-    assert np.allclose(ds.invert_T(T) @ T, np.eye(4))
+    R, t = poses.T_to_rt(T)
+    assert np.allclose(poses.rt_to_T(R, t), T)
+    assert np.allclose(poses.invert_T(T) @ T, np.eye(4))
 
 
 def test_dataset_reader(analytic_dataset):
@@ -100,7 +100,7 @@ def test_bad_inputs_name_the_file(analytic_dataset, tmp_path):
         ds.Dataset(tmp_path)
     empty = tmp_path / "empty"
     (empty / "videos").mkdir(parents=True)
-    ds.write_dataset_info(empty, {"resolution": [4, 4]})
+    writers.write_dataset_info(empty, {"resolution": [4, 4]})
     with pytest.raises(ds.DatasetError, match="no videos"):
         ds.Dataset(empty)
 

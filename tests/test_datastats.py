@@ -4,13 +4,15 @@ import pytest
 
 from analytic import box, cylinder, make_dataset, two_box_scenes
 from selfseg.config import load_config
-from selfseg.dataset import Dataset, VideoWriter, write_dataset_info
+from selfseg.dataset import Dataset
+from selfseg.eval.cli import evaluate3d_main as main
 from selfseg.eval.datastats import (breakdown_summary, format_stats, mesh_distances, object_breakdown,
                                     reconstruction_stats, sample_surface, touching_pairs, view_stats)
-from selfseg.eval.table2 import STATS_JSON, main, run_stats, run_table2
+from selfseg.eval.table2 import STATS_JSON, run_stats, run_table2
 from selfseg.fileio import read_json
 from selfseg.method.pipeline import OursConfig
 from selfseg.raycast import RaycastScene, look_at
+from selfseg.writers import VideoWriter, write_dataset_info
 from test_pipeline import FAST
 
 

@@ -9,11 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from selfseg.dataset import Dataset, read_inst, write_inst
-from selfseg.deploy import MODEL_JSON, plane_foreground, preview, segment_main, train_main
+from selfseg.dataset import Dataset, read_inst
 from selfseg.eval.cli import main as evaluate
 from selfseg.eval.protocol import fold_split, select_test_frames
-from selfseg.method.background import BackgroundConfig
+from selfseg.method.background import BackgroundConfig, frame_foreground
+from selfseg.method.cli import segment_main, train_main
+from selfseg.method.deploy import MODEL_JSON, preview
+from selfseg.writers import write_inst
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
@@ -83,7 +85,7 @@ def test_train_and_segment_reproduce_evaluate(tmp_path, capsys, monkeypatch):
     assert "3 frames in" in capsys.readouterr().out
     for f in v.frame_ids[:3]:
         seg = read_inst(tmp_path / f"segs/{f:06d}.png")
-        fg = plane_foreground(v.depth_m(f), v.K(), BackgroundConfig())
+        fg = frame_foreground(v.depth_m(f), v.K(), BackgroundConfig())
         assert seg.shape == (ds.height, ds.width) and seg.max() > 0
         assert not (seg[~fg] > 0).any()  # instances only inside the estimated foreground
         assert cv2.imread(str(tmp_path / f"segs/preview/{f:06d}.png")).shape == (ds.height, ds.width, 3)
@@ -133,7 +135,7 @@ def test_plane_foreground_and_preview_on_a_tiny_frame():
     lv = ds.labeled(ds.video_ids[0])
     f = lv.frame_ids[0]
     gt = lv.inst(f) > 0
-    fg = plane_foreground(lv.depth_m(f), lv.K(), BackgroundConfig())
+    fg = frame_foreground(lv.depth_m(f), lv.K(), BackgroundConfig())
     iou = (fg & gt).sum() / (fg | gt).sum()
     assert iou > 0.6, iou  # the table is removed, the objects stay
     inst = lv.inst(f)

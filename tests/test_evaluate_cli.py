@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from selfseg.dataset import write_inst
 from selfseg.eval.cli import main
+from selfseg.writers import write_inst
 
 
 def run_cli(capsys, *argv):

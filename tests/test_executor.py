@@ -296,7 +296,8 @@ def test_executor_section_of_the_yaml_config(tiny_dataset, tmp_path, capsys, sec
 def test_evaluate3d_on_a_cluster_survives_a_killed_worker(cluster, tiny_dataset, tmp_path):
     """evaluate3d's per-video stages as tasks on a joined 2-CPU cluster, one task's worker killed mid-stage:
     Ray re-runs it and Table II equals the local run's."""
-    cmd = [sys.executable, "-m", "selfseg.eval.table2", "--data", str(tiny_dataset), "--rows", "lccp+symseg",
+    cmd = [sys.executable, "-c", "import sys; from selfseg.eval.cli import evaluate3d_main; sys.exit(evaluate3d_main())",
+           "--data", str(tiny_dataset), "--rows", "lccp+symseg",
            "--quiet"]
     local = subprocess.run([*cmd, "--out", str(tmp_path / "local")], capture_output=True, text=True, timeout=900)
     assert local.returncode == 0, local.stderr

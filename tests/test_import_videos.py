@@ -8,9 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from selfseg.dataset import Dataset, depth_to_png_units
-from selfseg.importers import associate, main, scale_K
+from selfseg.cli import main
+from selfseg.dataset import Dataset
+from selfseg.importers import associate, scale_K
 from selfseg.manifest import verify
+from selfseg.writers import depth_to_png_units
 
 TINY: Path  # the generated tiny preset (conftest's tiny_dataset), set for the module below
 

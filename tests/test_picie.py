@@ -9,11 +9,11 @@ import torch
 
 from selfseg.baselines.picie import (Geometric, PicieConfig, PicieNet, PicieNetConfig, apply_geometric, picie_loss,
                                      sample_geometric, train_picie)
-from selfseg.baselines.semantic_instances import (Schedule, UnlabeledFrames, classes_to_instances, frame_foreground,
+from selfseg.baselines.semantic_instances import (Schedule, UnlabeledFrames, classes_to_instances,
                                                   spherical_kmeans, training_key)
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import main as evaluate
-from selfseg.method.background import BackgroundConfig
+from selfseg.method.background import BackgroundConfig, frame_foreground
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -126,7 +126,8 @@ def test_instance_settings_reuse_the_trained_network():
 def test_training_foreground_comes_from_depth_above_the_support_plane(analytic_dataset):
     ds = Dataset(analytic_dataset)
     for vid in ds.video_ids:
-        fg = frame_foreground(ds.video(vid), 0, BackgroundConfig())
+        v = ds.video(vid)
+        fg = frame_foreground(v.depth_m(0), v.K(0), BackgroundConfig())
         gt = ds.labeled(vid).inst(0) > 0
         assert (fg & gt).sum() / (fg | gt).sum() > 0.8
 

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from selfseg.baselines.external import ExternalConfig, ExternalPredictions
-from selfseg.dataset import (MASK_INST, SCENE_GT, Dataset, DatasetError, LabeledVideo,
-                             PosesNotGiven, read_inst, write_inst)
+from selfseg.dataset import MASK_INST, SCENE_GT, Dataset, DatasetError, LabeledVideo, PosesNotGiven, read_inst
 from selfseg.eval.metrics import METRIC_KEYS
 from selfseg.eval.protocol import WORK_DIR, EvalOptions, fold_split, make_folds, run_fold, select_test_frames
 from selfseg.guard import GroundTruthAccessError
 from selfseg.method_api import Method
 from selfseg.registry import get_method_class
+from selfseg.writers import write_inst
 
 FAST = EvalOptions(frame_stride=2, n_boot=100)
 

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from selfseg.method.matching import MatchConfig, MatchResult, PairMatch, SceneGraph, match_all, match_graphs
 from selfseg.method.pruning import PruneConfig, criterion_cost, criterion_isolation, prune_matches
 from selfseg.method.registration import precision_recall, register
-from selfseg.dataset import transform_points
+from selfseg.poses import transform_points
 
 
 def sample(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:

@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from selfseg.fileio import read_json
 from selfseg.method.pruning import MatchDecision, NodeDecision
 from selfseg.method.pseudolabels import PseudoLabelConfig, SceneData, make_pseudo_labels, merge_segments
-from selfseg.dataset import transform_points
 from selfseg.method.segment_graph import build_segment_graph
+from selfseg.poses import transform_points
 
 # a three-part object: box, bar and ball in a row, touching
 OBJECT = [trimesh.creation.box((0.06, 0.04, 0.03)),

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from analytic import bowl, box, cylinder, make_dataset
 
-from selfseg.dataset import Dataset, VideoWriter, write_dataset_info
+from selfseg.dataset import Dataset
 from selfseg.method.background import BackgroundConfig, remove_support_plane, up_hint_from_poses
 from selfseg.method.projection import foreground_mask
 from selfseg.method.recon_stage import load_recon, run_recon_stage
@@ -13,6 +13,7 @@ from selfseg.method.reconstruct import (ReconConfig, ReconstructionError, Tracki
                                         reconstruct, trajectory_error)
 from selfseg.raycast import RaycastScene, look_at
 from selfseg.stages import StageCache
+from selfseg.writers import VideoWriter, write_dataset_info
 
 OBJECTS = [(box((0.08, 0.08, 0.08), (-0.08, 0.0, 0.04)), 1), (cylinder(0.04, 0.1, (0.07, 0.04, 0.05)), 2),
            (bowl(center=(0.02, -0.1, 0)), 3)]

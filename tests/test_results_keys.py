@@ -15,12 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from selfseg.dataset import Dataset, write_inst
+from selfseg.dataset import Dataset
 from selfseg.eval.cli import main
 from selfseg.eval.protocol import EvalOptions, MethodOutputError, fold_split, run_fold
 from selfseg.fileio import read_json, write_json
 from selfseg.leaderboards.build import load_results
 from selfseg.method_api import Method
+from selfseg.writers import write_inst
 
 QUICK = ["--frame-stride", "3", "--quiet"]
 

@@ -1,33 +1,26 @@
-"""``train`` and ``segment``: train a method on unlabeled recordings, keep the model, segment new frames.
+"""Saved models: what ``train`` writes and ``segment`` reads (the commands: :mod:`selfseg.method.cli`).
 
-    train --method ours --data DIR [--config FILE] [--set key=value ...] [--videos ID,ID] --out MODEL_DIR
-    segment --model MODEL_DIR --rgb X.png [--depth Y.png --intrinsics K.txt] [--depth-scale MM]
-            [--foreground mask.png | --foreground plane] --out OUT.png [--preview]
-    segment --model MODEL_DIR --rgb RGB_DIR [--depth DEPTH_DIR --intrinsics K.txt]
-            [--foreground MASK_DIR | --foreground plane] --out OUT_DIR [--preview]
+:func:`train_model` runs the method's ``fit`` on every video of the dataset (or the given ones), no
+folds, inside the ground-truth guard, and writes the model folder atomically: ``weights.pt`` (the
+network), ``config.json`` (the method's resolved config, clustering settings included) and
+``model.json`` (model format version, method, config hash, selfseg/torch versions, the training
+data's content hash and videos). The method's caches go to ``MODEL_DIR.work/`` (a re-run reuses
+them; resumable).
 
-``train`` runs the method's ``fit`` on every video of the dataset (or ``--videos``), no folds, inside
-the ground-truth guard, and writes ``MODEL_DIR`` atomically: ``weights.pt`` (the network),
-``config.json`` (the method's resolved config, clustering settings included) and ``model.json``
-(model format version, method, config hash, selfseg/torch versions, the training data's content hash
-and videos). The method's caches go to ``MODEL_DIR.work/`` (a re-run reuses them; resumable).
-
-``segment`` loads the model and segments like the method does in ``evaluate``: the network embeds the
-frame (at its training scale, inside the foreground box when trained with ``fg_crop``) and vMF
-mean-shift clusters the foreground pixels. The foreground is a mask PNG (non-zero = foreground),
-``plane`` (depth back-projected with K, the dominant support plane removed by RANSAC with the
-method's ``background`` settings, :func:`selfseg.baselines.semantic_instances.frame_foreground`,
-i.e. :func:`selfseg.method.background.remove_support_plane`), or every pixel when not given. The
-output is a uint16 instance PNG (0 = background); ``--preview`` adds a colour overlay PNG
-(``<out>.preview.png``, or ``OUT_DIR/preview/``). In folder mode files are paired by stem, a progress
-bar runs and the measured frames per second are printed. Depth PNGs: uint16, mm = value × ``--depth-scale``.
-Bad input prints one line naming the file and the problem and exits with status 2.
+:func:`run_segment` loads the model and segments like the method does in ``evaluate``: the network
+embeds the frame (at its training scale, inside the foreground box when trained with ``fg_crop``)
+and vMF mean-shift clusters the foreground pixels. The foreground is a mask PNG (non-zero =
+foreground), ``plane`` (:func:`selfseg.method.background.frame_foreground` with the method's
+``background`` settings: depth back-projected with K, the dominant support plane removed by RANSAC),
+or every pixel when not given. The output is a uint16 instance PNG (0 = background); ``--preview``
+adds a colour overlay PNG (``<out>.preview.png``, or ``OUT_DIR/preview/``). In folder mode files are
+paired by stem, a progress bar runs and the measured frames per second are printed. Depth PNGs:
+uint16, mm = value × ``--depth-scale``.
 """
 from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -35,10 +28,15 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import ConfigError, config_hash, from_dict, load_config, to_dict
-from selfseg.dataset import Dataset, DatasetError, read_depth_m, read_inst, read_rgb, validate_K, write_inst
-from selfseg.fileio import FileFormatError, atomic_dir, read_json, write_json
-from selfseg.guard import GroundTruthAccessError, ground_truth_forbidden
+from selfseg.dataset import Dataset, DatasetError, read_depth_m, read_inst, read_rgb, validate_K
+from selfseg.fileio import atomic_dir, read_json, write_json
+from selfseg.guard import ground_truth_forbidden
+from selfseg.importers import IMAGE_EXTS, image_files, read_intrinsics
+from selfseg.method.background import frame_foreground
+from selfseg.method.meanshift import cluster_frame
+from selfseg.method.pipeline import Ours
 from selfseg.registry import UnknownMethodError, get_method_class
+from selfseg.writers import write_inst, write_rgb
 
 MODEL_FORMAT = "selfseg-model"
 MODEL_VERSION = 1
@@ -50,8 +48,6 @@ class ModelError(ValueError):
 
 
 def _embedding_method(name: str):
-    from selfseg.method.pipeline import Ours
-
     cls = get_method_class(name)
     if not issubclass(cls, Ours):
         raise ConfigError(f"--method {name!r}: train/segment support the unlabeled embedding methods "
@@ -120,30 +116,8 @@ def load_model(model_dir: Path):
     return m
 
 
-class _Frame:
-    """The one frame a foreground estimator needs: depth in metres and K (a :class:`Video`'s accessors)."""
-
-    def __init__(self, depth_m: np.ndarray, K: np.ndarray, name: str):
-        self._depth, self._K, self.video_id = depth_m, K, name
-
-    def depth_m(self, frame_id: int) -> np.ndarray:
-        return self._depth
-
-    def K(self, frame_id: int | None = None) -> np.ndarray:
-        return self._K
-
-
-def plane_foreground(depth_m: np.ndarray, K: np.ndarray, bg_cfg, name: str = "frame") -> np.ndarray:
-    """bool H×W: pixels whose depth point stands above the dominant support plane (the methods' RANSAC)."""
-    from selfseg.baselines.semantic_instances import frame_foreground
-
-    return frame_foreground(_Frame(depth_m, K, name), 0, bg_cfg)
-
-
 def segment_frame(method, rgb: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
     """uint16 H×W instance map of one frame, as ``method.segment`` computes it in ``evaluate``."""
-    from selfseg.method.meanshift import cluster_frame
-
     return cluster_frame(method.embed(rgb, fg_mask), fg_mask, method.config.cluster).astype(np.uint16)
 
 
@@ -164,15 +138,13 @@ def preview(rgb: np.ndarray, inst: np.ndarray) -> np.ndarray:
 
 
 def _write_preview(path: Path, rgb: np.ndarray, inst: np.ndarray) -> None:
-    from selfseg.dataset import write_rgb
-
     write_rgb(path, preview(rgb, inst))
 
 
 def _foreground(spec: str | None, fg_path: Path | None, rgb: np.ndarray, depth: np.ndarray | None,
                 K: np.ndarray | None, method, name: str) -> np.ndarray:
     if spec == "plane":
-        return plane_foreground(depth, K, method.config.background, name)
+        return frame_foreground(depth, K, method.config.background, f"video {name} frame 0")
     if fg_path is not None:
         m = read_inst(fg_path) > 0
         if m.shape != rgb.shape[:2]:
@@ -182,8 +154,7 @@ def _foreground(spec: str | None, fg_path: Path | None, rgb: np.ndarray, depth: 
 
 
 def run_segment(args: argparse.Namespace) -> int:
-    from selfseg.importers import IMAGE_EXTS, _images, read_intrinsics
-
+    """The ``segment`` command on parsed arguments (see :func:`selfseg.method.cli.segment_parser`)."""
     method = load_model(args.model)
     plane = args.foreground == "plane"
     if plane and (args.depth is None or args.intrinsics is None):
@@ -191,11 +162,11 @@ def run_segment(args: argparse.Namespace) -> int:
     K = read_intrinsics(args.intrinsics) if args.intrinsics else None
     folder = args.rgb.is_dir()
     if folder:
-        rgbs = _images(args.rgb)
+        rgbs = image_files(args.rgb)
         if not rgbs:
             raise DatasetError(f"{args.rgb}: no {'/'.join(IMAGE_EXTS)} frames")
-        depths = _images(args.depth) if args.depth else {}
-        fgs = _images(Path(args.foreground)) if args.foreground and not plane else {}
+        depths = image_files(args.depth) if args.depth else {}
+        fgs = image_files(Path(args.foreground)) if args.foreground and not plane else {}
         for what, d, src in (("depth", depths, args.depth), ("foreground", fgs, args.foreground)):
             if src is not None and not (what == "foreground" and plane):
                 miss = [s for s in rgbs if s not in d]
@@ -227,58 +198,3 @@ def run_segment(args: argparse.Namespace) -> int:
     print(f"segment: {n} frame{'s' * (n != 1)} in {dt:.2f} s = {n / dt:.2f} fps (I/O and foreground included) "
           f"→ {args.out}")
     return 0
-
-
-def train_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="train", description="Train an unlabeled method on every video of a dataset "
-                                "(no folds) and save the model for segment.")
-    p.add_argument("--method", required=True, help="ours, ours-v2, ours-v3 or ours-v4")
-    p.add_argument("--data", required=True, type=Path, help="dataset folder (labels not needed, never read)")
-    p.add_argument("--config", type=Path, help="YAML file with the method's config (as in evaluate)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value (repeatable), as in evaluate")
-    p.add_argument("--videos", help="comma-separated video ids to train on (default: all)")
-    p.add_argument("--out", required=True, type=Path, help="model folder to write")
-    return p
-
-
-def segment_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="segment", description="Segment frames with a model saved by train.")
-    p.add_argument("--model", required=True, type=Path, help="model folder written by train")
-    p.add_argument("--rgb", required=True, type=Path, help="colour image, or a folder of them (folder mode)")
-    p.add_argument("--depth", type=Path, help="uint16 depth PNG (or folder), mm = value × --depth-scale")
-    p.add_argument("--depth-scale", type=float, default=1.0, help="millimetres per depth unit (default 1)")
-    p.add_argument("--intrinsics", type=Path, help="file with 'fx fy cx cy' (pixel-centre convention) or a 3×3 K")
-    p.add_argument("--foreground", help="mask PNG (or folder; non-zero = foreground) or 'plane' (default: all pixels)")
-    p.add_argument("--out", required=True, type=Path, help="output instance PNG, or folder in folder mode")
-    p.add_argument("--preview", action="store_true", help="also write a colour overlay PNG")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
-
-
-def _main(prog: str, fn, argv) -> int:
-    try:
-        return fn(argv)
-    except GroundTruthAccessError as e:
-        print(f"{prog}: error: the method tried to read ground truth: {e}", file=sys.stderr)
-    except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, FileExistsError,
-            ModelError) as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-    return 2
-
-
-def _train(argv) -> int:
-    a = train_parser().parse_args(argv)
-    videos = [v.strip() for v in a.videos.split(",") if v.strip()] if a.videos else None
-    out = train_model(a.method, a.data, a.out, a.config, a.overrides, videos)
-    print(f"train: model written to {out}")
-    return 0
-
-
-def train_main(argv: list[str] | None = None) -> int:
-    return _main("train", _train, argv)
-
-
-def segment_main(argv: list[str] | None = None) -> int:
-    return _main("segment", lambda argv: run_segment(segment_parser().parse_args(argv)), argv)
-
