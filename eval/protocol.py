@@ -382,7 +382,7 @@ def run_conflict(out: Path, dataset: Dataset, method: str, config, options: Eval
 def retire_run(out: Path, dataset: Dataset, name: str) -> Path:
     """Move run ``name``'s scores and predictions for ``dataset`` out of the way (renames, so no fold of the old
     run stays beside the new one's); returns the folder they went to, to delete once the new run finished."""
-    fmt = {"dataset": results_key(out, dataset), "name": name, "fold": 0}
+    fmt = {"dataset": results_key(out, dataset), "name": name}
     trash = Path(out) / REPLACED_DIR.format(**fmt, pid=os.getpid())
     for kind, folder in (("scores", Path(out) / RUN_SCORES_DIR.format(**fmt)),
                          ("predictions", Path(out) / PREDICTIONS_DIR.format(**fmt))):

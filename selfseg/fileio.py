@@ -98,6 +98,15 @@ def atomic_dir(final: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def hash_file(path: str | os.PathLike, n: int = 16) -> str:
+    """Short sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:n]
+
+
 def hash_json(obj: Any, n: int = 12) -> str:
     """Short sha256 of the canonical JSON of ``obj`` (sorted keys, no whitespace)."""
     return hashlib.sha256(dumps_json(obj, indent=None).encode()).hexdigest()[:n]
