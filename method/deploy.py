@@ -20,6 +20,7 @@ uint16, mm = value × ``--depth-scale``.
 from __future__ import annotations
 
 import argparse
+import pickle
 import shutil
 import time
 from pathlib import Path
@@ -94,6 +95,8 @@ def load_model(model_dir: Path):
     if not meta_path.is_file():
         raise ModelError(f"{meta_path}: missing; {model_dir} is not a model folder written by train")
     meta = read_json(meta_path)
+    if not isinstance(meta, dict):
+        raise ModelError(f"{meta_path}: expected a JSON object, got a {type(meta).__name__}")
     if meta.get("format") != MODEL_FORMAT or meta.get("model_version") != MODEL_VERSION:
         raise ModelError(f"{meta_path}: model format {meta.get('format')!r} version {meta.get('model_version')!r}, "
                          f"this selfseg reads {MODEL_FORMAT} version {MODEL_VERSION}")
@@ -103,7 +106,7 @@ def load_model(model_dir: Path):
         raise ModelError(f"{meta_path}: method {meta.get('method')!r} cannot segment here ({e})") from None
     try:
         config = from_dict(cls.config_cls, read_json(Path(model_dir) / CONFIG_JSON))
-    except ConfigError as e:
+    except (ConfigError, TypeError, AttributeError) as e:  # not a mapping of the config's fields
         raise ModelError(f"{Path(model_dir) / CONFIG_JSON}: not a {cls.name} config ({e})") from None
     if config_hash(config) != meta.get("config_hash"):
         raise ModelError(f"{Path(model_dir) / CONFIG_JSON}: config hash {config_hash(config)} differs from "
@@ -111,8 +114,12 @@ def load_model(model_dir: Path):
     m = cls(config, None)
     try:
         m.load(Path(model_dir) / WEIGHTS_PT)
-    except (RuntimeError, KeyError) as e:
-        raise ModelError(f"{Path(model_dir) / WEIGHTS_PT}: weights do not fit the {cls.name} network ({e})") from None
+    except (pickle.UnpicklingError, EOFError) as e:  # not a file torch.save wrote (zero bytes, an image, text)
+        raise ModelError(f"{Path(model_dir) / WEIGHTS_PT}: not a weights file written by train "
+                         f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+        raise ModelError(f"{Path(model_dir) / WEIGHTS_PT}: weights do not fit the {cls.name} network "
+                         f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
     return m
 
 

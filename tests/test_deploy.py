@@ -130,6 +130,39 @@ def test_bad_models_and_inputs(tmp_path, capsys):
     assert not (tmp_path / "o.png").exists() and not (tmp_path / "m").exists()
 
 
+def test_bad_model_files_are_one_line(tmp_path, capsys):
+    """A model.json that is not an object, and weights.pt that is empty, an image, text or another pickle: one
+    line naming the file, exit 2 (torch.load with weights_only: nothing in the file is executed)."""
+    import torch
+
+    from selfseg.config import config_hash, to_dict
+    from selfseg.method.deploy import CONFIG_JSON, WEIGHTS_PT
+    from selfseg.method.pipeline import OursConfig
+
+    rgb = TINY / "videos/000000/rgb/000000.png"
+    args = ["--rgb", str(rgb), "--out", str(tmp_path / "o.png")]
+    listed = tmp_path / "list"
+    listed.mkdir()
+    (listed / MODEL_JSON).write_text("[1, 2]")
+    assert segment_main(["--model", str(listed), *args]) == 2
+    assert _err(capsys).strip() == f"segment: error: {listed / MODEL_JSON}: expected a JSON object, got a list"
+    cases = {"empty": b"", "png": rgb.read_bytes(), "text": b"not weights\n"}
+    for name, data in cases.items():
+        model = _fake_model(tmp_path / name, config_hash=config_hash(OursConfig()))
+        (model / CONFIG_JSON).write_text(json.dumps(to_dict(OursConfig())))
+        (model / WEIGHTS_PT).write_bytes(data)
+        assert segment_main(["--model", str(model), *args]) == 2, name
+        err = _err(capsys)
+        assert len(err.strip().splitlines()) == 1 and f"{model / WEIGHTS_PT}: not a weights file" in err, err
+    other = _fake_model(tmp_path / "other", config_hash=config_hash(OursConfig()))
+    (other / CONFIG_JSON).write_text(json.dumps(to_dict(OursConfig())))
+    torch.save({"something": [1, 2]}, other / WEIGHTS_PT)
+    assert segment_main(["--model", str(other), *args]) == 2
+    err = _err(capsys)
+    assert len(err.strip().splitlines()) == 1 and f"{other / WEIGHTS_PT}: weights do not fit" in err, err
+    assert not (tmp_path / "o.png").exists()
+
+
 def test_plane_foreground_and_preview_on_a_tiny_frame():
     ds = Dataset(TINY)
     lv = ds.labeled(ds.video_ids[0])
