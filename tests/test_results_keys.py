@@ -51,19 +51,27 @@ def test_same_name_datasets_and_partial_reruns_stay_apart(analytic_dataset, twin
     twin_key = next(p.name for p in (out / "scores").iterdir() if p.name != "analytic")
     assert twin_key.startswith("analytic-") and f"scores/{twin_key}/" in stdout.replace(os.sep, "/")
     assert {p.name: p.read_bytes() for p in (out / "scores/analytic/fg-components").iterdir()} == first  # untouched
-    # a partial re-run with another setting under the same run name: its own row, never averaged in
+    # a partial re-run with another setting under the same run name is refused (evaluate --replace replaces)
     code, _, err = evaluate(capsys, "--method", "depth-clustering", "--data", analytic_dataset, "--out", out, *QUICK)
     assert code == 0, err
+    run = out / "scores/analytic/depth-clustering"
+    kept = {p.name: p.read_bytes() for p in run.iterdir()}
     code, _, err = evaluate(capsys, "--method", "depth-clustering", "--data", analytic_dataset, "--out", out,
                             "--folds", "1", "--set", "distance_m=0.05", *QUICK)
-    assert code == 0, err
+    assert code == 2 and "distance_m 0.01 → 0.05" in err
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == kept
+    # results folders written before that refusal existed can hold such a mix: the leaderboard still never
+    # averages it, each run gets its own row
+    rec = json.loads((run / "fold1.json").read_text())
+    rec["config"]["distance_m"], rec["config_hash"] = 0.05, "another-config"
+    (run / "fold1.json").write_text(json.dumps(rec))
     groups = load_results(out)
     assert set(groups) == {"analytic", twin_key}
     names = sorted(name for _, name in groups["analytic"])
     rows = [n for n in names if n.startswith("depth-clustering")]
     assert len(rows) == 2 and all(" [" in n for n in rows)  # two runs, each with its key
     folds = sorted(len(groups["analytic"]["2d", n]) for n in rows)
-    assert folds == [1, 2]  # fold 1 of the first run was replaced, folds 0 and 2 kept
+    assert folds == [1, 2]
     for n in rows:
         assert len({r["config_hash"] for r in groups["analytic"]["2d", n]}) == 1
 
