@@ -43,6 +43,8 @@ def test_baselines_and_ours_on_tiny(tiny, tmp_path):
     one, depth, ours = (scores(tmp_path, n, 0) for n in ("one-segment", "depth-clustering", "ours"))
     print({n: round(m["IoU"], 3) for n, m in (("one-segment", one), ("depth-clustering", depth), ("ours", ours))})
     assert depth["IoU"] > 0.6
-    # measured when set (60 steps per network): ours P .899 R .708 IoU .661; one-segment IoU .096
+    # measured (60 steps per network) on the pinned generator's tiny (manifest 1bcdf5c867ce3ff1): ours P .693 R .711
+    # IoU .624, one-segment IoU .108. The earlier floor P > .7 was set on the pre-pinning scenes (P .899 then,
+    # .814 at 9ffd189 on those scenes with this code and with db0526e's alike: the drop is the new scenes).
     assert ours["IoU"] > max(0.45, one["IoU"] + 0.2)
-    assert ours["P"] > 0.7 and ours["R"] > 0.5
+    assert ours["P"] > 0.55 and ours["R"] > 0.5
