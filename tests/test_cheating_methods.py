@@ -206,8 +206,9 @@ ROUTES = [
                 for top, dirs, files in os.walk("/"):
                     dirs[:] = [d for d in dirs if os.path.join(top, d) not in ("/proc", "/sys", "/dev", "/usr")
                                and d not in ("site-packages", ".git", ".venv")]
-                    if "dataset_info.json" in files:
+                    if "dataset_info.json" in files:  # a dataset: note it, and list none of its folders
                         self.copies.append(top)
+                        dirs[:] = []
                     if time.monotonic() > deadline:
                         break
 
