@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import re
 import shutil
+import socket
 import sys
 import time
 from pathlib import Path
@@ -26,7 +27,7 @@ from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_
                              SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str)
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, executor_config, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
-from selfseg.generate.determinism import reexec_pinned
+from selfseg.generate.determinism import is_pinned, pinned_vars, reexec_pinned, start_environ
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
@@ -245,10 +246,16 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
 _worker_library: list | None = None
 
 
-def _generate_in_worker(cfg_dict: dict, index: int, final_dir: str, cache_dir: str) -> dict:
+def _generate_in_worker(cfg_dict: dict, index: int, final_dir: str, cache_dir: str, pinned: bool) -> dict:
     """Executor entry: load the library once per worker process, then generate one scene. A scene already in
-    place was finished by an attempt whose worker died before replying (Ray re-runs such tasks): no timings."""
+    place was finished by an attempt whose worker died before replying (Ray re-runs such tasks): no timings.
+    ``pinned``: whether the command runs pinned (:mod:`selfseg.generate.determinism`); a worker that started
+    otherwise would compute other bytes, so it refuses (GenerateError)."""
     global _worker_library
+    if is_pinned(start_environ()) != pinned:
+        raise GenerateError(f"a worker on {socket.gethostname()} (pid {os.getpid()}) started with its numerical "
+                            f"libraries {'not ' if pinned else ''}pinned, unlike this command: its scenes would "
+                            "differ from this machine's (see selfseg.generate.determinism)")
     if Path(final_dir).is_dir():
         return {}
     cfg = from_dict(GenerateConfig, cfg_dict)
@@ -275,8 +282,9 @@ def open_executor(args: argparse.Namespace) -> cf.Executor | None:
     if args.executor == "local" and args.ray_address is None and args.workers == 1:
         return None
     where = executor_config(args, None)
+    env = start_environ()  # Ray workers, on any node, start pinned as this command is (a local pool inherits it)
     return make_executor(where.kind, where.ray_address, args.workers, num_cpus=where.ray_cpus_per_task,
-                         num_gpus=where.ray_gpus_per_task,
+                         num_gpus=where.ray_gpus_per_task, env_vars=pinned_vars(env) if is_pinned(env) else None,
                          mp_context=multiprocessing.get_context("spawn"))  # bpy is not fork-safe
 
 
@@ -327,7 +335,8 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
             bar.update()
     else:
         futures = [executor.submit(_generate_in_worker, cfg_dict, i,
-                                   str(out / VIDEO_DIR.format(video_id=video_id_str(i))), str(cache_dir)) for i in todo]
+                                   str(out / VIDEO_DIR.format(video_id=video_id_str(i))), str(cache_dir),
+                                   is_pinned(start_environ())) for i in todo]
         for fut in cf.as_completed(futures):
             for k, v in fut.result().items():
                 totals[k] += v
@@ -372,7 +381,11 @@ def main(argv: list[str] | None = None) -> int:
             except (GenerateError, ConfigError, DatasetError, FileFormatError, ValueError) as e:  # incl. ExecutorError
                 print(f"generate_scenes: error: {e}", file=sys.stderr)
                 return EXIT_BAD_INPUT
-            return run(args, cfg, library, t_start, executor)
+            try:
+                return run(args, cfg, library, t_start, executor)
+            except GenerateError as e:  # a worker that would compute other bytes
+                print(f"generate_scenes: error: {e}", file=sys.stderr)
+                return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("generate_scenes: interrupted; completed scenes are kept, re-run the same command to resume",
               file=sys.stderr)

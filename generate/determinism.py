@@ -51,6 +51,24 @@ def is_pinned(environ: dict[str, str]) -> bool:
     return pinned_env(environ) == dict(environ)
 
 
+def start_environ() -> dict[str, str]:
+    """The environment this process started with (what glibc read), not today's ``os.environ``: Linux's
+    ``/proc/self/environ``, else ``os.environ``."""
+    try:
+        raw = open("/proc/self/environ", "rb").read()
+    except OSError:
+        return dict(os.environ)
+    pairs = (e.split(b"=", 1) for e in raw.split(b"\0") if b"=" in e)
+    return {k.decode(errors="surrogateescape"): v.decode(errors="surrogateescape") for k, v in pairs}
+
+
+def pinned_vars(environ: dict[str, str]) -> dict[str, str]:
+    """The variables :func:`pinned_env` sets, with their pinned values for ``environ``: what another process
+    (a Ray worker on another machine) needs in its starting environment to compute as a pinned one does."""
+    pinned = pinned_env(environ)
+    return {k: pinned[k] for k in (*PINNED, "GLIBC_TUNABLES")}
+
+
 def reexec_pinned(module: str) -> None:
     """Replace this process by ``python -m module ARGS`` under :func:`pinned_env`, unless already pinned."""
     if not is_pinned(os.environ):

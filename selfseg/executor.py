@@ -119,7 +119,7 @@ class RayExecutor(cf.Executor):
     disconnects; a Ray instance this executor started stops with it, a joined cluster keeps running."""
 
     def __init__(self, address: str | None = None, workers: int = 1, num_cpus: float = 1, num_gpus: float = 0,
-                 max_retries: int = RAY_MAX_RETRIES):
+                 max_retries: int = RAY_MAX_RETRIES, env_vars: dict[str, str] | None = None):
         if address is not None:
             _check_address(address)
         else:  # Ray reads this when imported: a private instance binds the loopback interface only
@@ -133,6 +133,8 @@ class RayExecutor(cf.Executor):
         self._futures: list[tuple[Any, cf.Future]] = []
         quiet = {"include_dashboard": False, "log_to_driver": False, "logging_level": "ERROR",
                  "configure_logging": False}
+        if env_vars:  # in the environment every worker process starts with, on every node
+            quiet["runtime_env"] = {"env_vars": dict(env_vars)}
         try:
             if address is None:  # a private instance on this machine, on the loopback interface
                 ray.init(num_cpus=workers, **quiet)
@@ -181,13 +183,14 @@ class RayExecutor(cf.Executor):
 
 
 def make_executor(kind: str = "local", address: str | None = None, workers: int = 1, num_cpus: float = 1,
-                  num_gpus: float = 0, mp_context=None) -> cf.Executor:
+                  num_gpus: float = 0, mp_context=None, env_vars: dict[str, str] | None = None) -> cf.Executor:
     """The executor for a fan-out, to use as a context manager.
 
     ``local``: a ProcessPoolExecutor of ``workers`` processes (``mp_context``, e.g. spawn for bpy; the
     platform default otherwise); ``address`` must be None. ``ray``: a :class:`RayExecutor`; ``workers``
     is the CPU count of the local instance it starts when ``address`` is None (a joined cluster has
-    its own size); each task asks for ``num_cpus`` CPUs and ``num_gpus`` GPUs.
+    its own size); each task asks for ``num_cpus`` CPUs and ``num_gpus`` GPUs. ``env_vars`` (Ray only; a local
+    pool inherits this process's environment) are set in every Ray worker's environment when it starts.
     Raises ExecutorError for an unknown kind, an unreachable address or bad counts."""
     if kind not in EXECUTORS:
         raise ExecutorError(f"--executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
@@ -197,7 +200,7 @@ def make_executor(kind: str = "local", address: str | None = None, workers: int 
         if address is not None:
             raise ExecutorError("--ray-address needs --executor ray")
         return cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp_context)
-    return RayExecutor(address, workers, num_cpus, num_gpus)
+    return RayExecutor(address, workers, num_cpus, num_gpus, env_vars=env_vars)
 
 
 def shared_executor(where: ExecutorConfig, out: str | os.PathLike) -> cf.Executor:

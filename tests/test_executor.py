@@ -24,11 +24,14 @@ from selfseg.eval.cli import main as evaluate  # noqa: E402
 from selfseg.executor import ExecutorError, check_shared_folder, make_executor  # noqa: E402
 from selfseg.fileio import read_json  # noqa: E402
 from selfseg.generate.cli import main as generate_scenes  # noqa: E402
+from selfseg.generate.determinism import pinned_vars  # noqa: E402
 from selfseg.method.matching import MatchConfig, SceneGraph, match_all  # noqa: E402
 from selfseg.method.pruning import PruneConfig, register_clouds  # noqa: E402
 
 RAY = str(Path(sys.executable).parent / "ray")
 TINY = ["--preset", "tiny", "--renderer", "workbench", "--quiet"]
+# generate_scenes as conftest's tiny_dataset runs it, in this process's environment: main(argv) does not pin itself
+UNPINNED_COMMAND = [sys.executable, "-c", "import sys; from selfseg.generate.cli import main; sys.exit(main(sys.argv[1:]))"]
 
 
 def _free_port() -> int:
@@ -211,15 +214,53 @@ def test_generate_on_ray_identical_and_survives_a_killed_worker(cluster, tiny_da
     """The tiny preset on a joined 2-CPU cluster, with one task's worker process killed mid-run: Ray re-runs
     the scene and the dataset is byte-identical to the local one (no half-written scene left)."""
     out = tmp_path / "data"
-    run = subprocess.Popen([sys.executable, "-m", "selfseg.generate.cli", *TINY, "--out", str(out),
-                            "--executor", "ray", "--ray-address", cluster.address],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen([*UNPINNED_COMMAND, *TINY, "--out", str(out), "--executor", "ray", "--ray-address",
+                            cluster.address], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     killed = _kill_a_task_worker(cluster, run)
     stdout, stderr = run.communicate(timeout=300)
     assert killed is not None, "no task worker was seen running"
     assert run.returncode == 0, stderr
     assert "5 scenes generated" in stdout
     _same_tree(out, tiny_dataset)
+
+
+@pytest.mark.slow
+def test_the_pinned_command_pins_the_workers_of_a_cluster(cluster, tmp_path):
+    """``generate_scenes`` pins itself (selfseg.generate.determinism); on a cluster started unpinned (as
+    ``ray start`` is on any node) its workers start pinned too, so the scene is byte-identical to the local
+    command's. Its control: unpinned workers (the in-process driver, below) give other bytes."""
+    args = [*TINY, "--scenes", "1", "--frames", "6"]
+    trees = {}
+    for name, cmd, ray in (("local", [sys.executable, "-m", "selfseg.generate.cli"], []),
+                           ("ray", [sys.executable, "-m", "selfseg.generate.cli"], ["--executor", "ray"]),
+                           ("ray-unpinned", UNPINNED_COMMAND, ["--executor", "ray"])):
+        extra = ["--ray-address", cluster.address] if ray else []
+        r = subprocess.run([*cmd, *args, "--out", str(tmp_path / name), "--cache-dir", str(tmp_path / f"c-{name}"),
+                            *ray, *extra], capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        trees[name] = tmp_path / name
+    _same_tree(trees["local"], trees["ray"])
+    flags = Path("/proc/cpuinfo").read_text().split() if Path("/proc/cpuinfo").exists() else []
+    if "fma" in flags and "avx2" in flags:  # elsewhere libm has one variant (tests/test_cross_machine.py)
+        with pytest.raises(AssertionError):
+            _same_tree(trees["local"], trees["ray-unpinned"])
+
+
+@pytest.mark.slow
+def test_workers_that_start_otherwise_pinned_are_refused(tmp_path):
+    """A cluster whose nodes start pinned, joined by an unpinned driver: the workers would compute other bytes,
+    so the run stops with one line and rc 2."""
+    env = ["env", *(f"{k}={v}" for k, v in pinned_vars(dict(os.environ)).items())]
+    c = Cluster(tmp_path / "head.log", env)
+    try:
+        r = subprocess.run([*UNPINNED_COMMAND, *TINY, "--scenes", "1", "--frames", "2", "--out", str(tmp_path / "d"),
+                            "--executor", "ray", "--ray-address", c.address], capture_output=True, text=True,
+                           timeout=300)
+    finally:
+        c.stop()
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("generate_scenes:")]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "started with its numerical libraries pinned, unlike this command" in lines[0]
 
 
 def test_probe_fails_when_workers_see_another_folder(tmp_path):
