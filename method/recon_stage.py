@@ -8,7 +8,9 @@ Stage folder ``cache.path("recon", video_id)/``::
                    no pose exists: frames before the first usable one), tracking_ok (F bool: tracked
                    or given and fused; False: predicted pose, not fused)
     plane.json     plane [a, b, c, d] (unit normal up: height = a·x + b·y + c·z + d), up_hint
-    tsdf.npz       the fused open3d VoxelBlockGrid (attributes tsdf, weight, color)
+    tsdf.npz       the fused open3d VoxelBlockGrid (attributes tsdf, weight, color): the arrays of its
+                   ``save()``, zip-compressed (4× smaller; open3d reads only uncompressed npz, see
+                   :func:`save_grid` / :func:`load_grid`)
     volume.json    voxel_size_m, block_resolution, trunc_m, K (3×3, OpenCV convention)
     keyframes.npz  frame_ids, T_world_cam (F×4×4), depth_m (F×H×W f32): free-space evidence
     fg/{fid:06d}.png  uint8 0/255 foreground mask of each frame: the kept points projected with
@@ -23,6 +25,7 @@ The world frame is the first camera's frame for estimated poses, the dataset's w
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,7 +94,7 @@ def run_recon_stage(video: Video, cache: StageCache, cfg: ReconConfig, bg: Backg
                             T_world_cam=T_all, tracking_ok=ok)
         write_json(tmp / PLANE_JSON, {"plane": plane.tolist(), "up_hint": up.tolist()})
         vol = recon.volume
-        vol.vbg.save(str(tmp / TSDF_NPZ))
+        save_grid(vol.vbg, tmp / TSDF_NPZ)
         write_json(tmp / VOLUME_JSON, {"voxel_size_m": vol.voxel_size_m, "block_resolution": vol.block_resolution,
                                        "trunc_m": vol.trunc_m, "K": vol.K.tolist()})
         np.savez_compressed(tmp / KEYFRAMES_NPZ, frame_ids=np.asarray(vol.keyframe_ids, np.int64),
@@ -147,12 +150,10 @@ class ReconStage:
 
     def volume(self) -> Volume:
         """The fused TSDF and keyframes (loaded on first use)."""
-        import open3d as o3d
-
         if self._volume is None:
             meta = read_json(self.dir / VOLUME_JSON)
             kf = np.load(self.dir / KEYFRAMES_NPZ)
-            vbg = o3d.t.geometry.VoxelBlockGrid.load(str(self.dir / TSDF_NPZ))
+            vbg = load_grid(self.dir / TSDF_NPZ)
             self._volume = Volume(vbg, meta["voxel_size_m"], meta["block_resolution"], meta["trunc_m"],
                                   np.asarray(meta["K"]), kf["frame_ids"].tolist(), kf["T_world_cam"], kf["depth_m"])
         return self._volume
@@ -160,6 +161,24 @@ class ReconStage:
     def occupancy(self, points_w: np.ndarray) -> np.ndarray:
         """int8 per world point: −1 observed free, 0 unknown, 1 at/behind a surface (see :func:`occupancy`)."""
         return occupancy(self.volume(), points_w)
+
+
+def save_grid(vbg, path: Path) -> None:
+    """Write an open3d VoxelBlockGrid to ``path`` as its own ``save()`` arrays, zip-compressed."""
+    with tempfile.TemporaryDirectory(prefix="selfseg_tsdf_") as d:
+        vbg.save(os.path.join(d, TSDF_NPZ))
+        with np.load(os.path.join(d, TSDF_NPZ)) as z:
+            np.savez_compressed(path, **{k: z[k] for k in z.files})
+
+
+def load_grid(path: Path):
+    """The VoxelBlockGrid :func:`save_grid` wrote (an uncompressed ``save()`` file is read too)."""
+    import open3d as o3d
+
+    with tempfile.TemporaryDirectory(prefix="selfseg_tsdf_") as d, np.load(path) as z:
+        plain = os.path.join(d, TSDF_NPZ)
+        np.savez(plain, **{k: z[k] for k in z.files})
+        return o3d.t.geometry.VoxelBlockGrid.load(plain)
 
 
 def load_recon(stage_dir: str | Path) -> ReconStage:
