@@ -366,6 +366,8 @@ def render(results: Path, dataset: str, groups: dict, max_points: int = MAX_POIN
 def write_report(results: str | Path, out: str | Path, dataset: str | None = None, max_points: int = MAX_POINTS,
                  models: dict | None = None) -> Path:
     """Write the report of ``dataset`` (the folder name under ``RESULTS/scores``; may be omitted when there is one)."""
+    if max_points < 1:
+        raise ConfigError(f"--max-points must be ≥ 1, got {max_points}")
     results = Path(results)
     if results.parent.name == SCORES_DIR and dataset is None:  # RESULTS/scores/<dataset>
         results, dataset = results.parent.parent, results.name

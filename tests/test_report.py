@@ -84,6 +84,7 @@ def test_report_holds_every_scene_and_match_offline(run):
         assert f">{outcome}<" in row and f"{m['src_scene']} / {m['src_comp']}" in row
         panels = figure(html, f"fig-match-{n}")["data"]
         assert len(panels) == 4 and n_points(panels[1]) == n_points(panels[3]) == len(m["pairs"])
+        assert 0 < n_points(panels[0]) <= MAX_POINTS and 0 < n_points(panels[2]) <= MAX_POINTS
     assert outcomes == diagnostics["pruning"]["matches_by_outcome"]  # the per-match outcomes add up to diagnostics
     # Tables I–III (with the paper's rows), the IoU plot and the montage of every 2-D run
     for title in ("Table I", "Table II", "Table III"):
