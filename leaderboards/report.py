@@ -192,8 +192,8 @@ def scene_figure(s: SceneView, merge_edges: list[list[int]]):
 
     pts = s.points_w[s.shown]
     seg = s.graph.labels[s.shown]
-    cloud = lambda colours: go.Scatter3d(mode="markers", marker={"size": 2, "color": colours}, hoverinfo="skip",  # noqa: E731
-                                         **_xyz(pts))
+    cloud = lambda colours, opacity=1.0: go.Scatter3d(  # noqa: E731
+        mode="markers", marker={"size": 2, "color": colours, "opacity": opacity}, hoverinfo="skip", **_xyz(pts))
     seg_colours = label_colours(np.arange(s.graph.n_segments + 1))
     nodes = go.Scatter3d(mode="markers", marker={"size": 5, "color": seg_colours[1:], "line": {"color": "black",
                                                                                                "width": 1}},
@@ -204,7 +204,7 @@ def scene_figure(s: SceneView, merge_edges: list[list[int]]):
     merges = go.Scatter3d(mode="lines", line={"color": "red", "width": 6}, hoverinfo="skip",
                           **_lines(s.graph.centroids, np.asarray(merge_edges, np.int64)))
     panels = [[cloud(_hex(np.clip(s.colors[s.shown] * 255, 0, 255)).tolist())],
-              [cloud([seg_colours[i] for i in seg + 1]), edges, nodes],
+              [cloud([seg_colours[i] for i in seg + 1], 0.3), edges, nodes],  # the graph shows through
               [cloud(label_colours(s.pseudo[s.shown] + 1)), merges],
               [cloud(label_colours(s.gt_shown))]]
     titles = ["RGB", f"LCCP + SymSeg: {s.graph.n_segments} segments, {len(s.graph.edges)} edges",
