@@ -150,10 +150,11 @@ def test_chromium_draws_the_3d_panels_from_the_file_without_network(run, tmp_pat
     img = cv2.imread(str(shot))
     assert img.shape[:2] == (1000, 1600)
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
-    coloured = (hsv[:, :, 1] > 90) & (hsv[:, :, 2] > 40)  # points; the page itself is black, grey and white
+    coloured = (hsv[:, :, 1] > 40) & (hsv[:, :, 2] > 40)  # points; the page itself is black, grey and white
     rows = np.nonzero(coloured.sum(1) > 40)[0]  # the scene view: rows crossed by coloured points
-    assert len(rows) > 150
+    # the same page with WebGL off (--disable-3d-apis) gave 48 such rows (a button, plotly's notice), < 4500 per quarter
+    assert len(rows) > 150, len(rows)
     band = coloured[rows]
     quarters = [band[:, i * 400:(i + 1) * 400].sum() for i in range(4)]
-    assert min(quarters) > 3000, quarters  # each of the four panels drew points
+    assert min(quarters) > 8000, quarters  # each of the four panels drew points
     assert len(np.unique(img[rows].reshape(-1, 3), axis=0)) > 200  # shaded colours, not flat fills
