@@ -161,7 +161,8 @@ def _lines(points: np.ndarray, pairs: np.ndarray) -> dict:
 
 
 def _camera(points: np.ndarray, up: np.ndarray, camera_w: np.ndarray) -> dict:
-    """A plotly scene camera looking at the cloud from the side of the recording camera, ``up`` up."""
+    """A plotly scene camera looking at the cloud from the side of the recording camera, ``up`` up (all in the
+    reconstruction's world frame: points and camera position in m, ``up`` a unit vector)."""
     view = camera_w - points.mean(0) if len(points) else np.array([0.0, 0.0, -1.0])
     view = view / max(np.linalg.norm(view), 1e-9) + 0.5 * up
     eye = 2.0 * view / max(np.linalg.norm(view), 1e-9)
