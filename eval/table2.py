@@ -79,14 +79,21 @@ def alignment(recon: ReconStage, labeled: LabeledVideo) -> tuple[np.ndarray, dic
                "drift_rot_mean_deg": float(np.mean(rot))}
 
 
+def table2_pipeline(dataset: Dataset, config: OursConfig, out: Path) -> Ours:
+    """The pipeline as ``evaluate3d`` runs it on ``dataset``: workdir ``OUT/work/ours/<dataset>/foldall``, per-video
+    stages under ``OUT/work/_stages`` (where :meth:`Ours.stage_cache` and :meth:`Ours.pseudo_dir` find its files)."""
+    method = Ours(config, Path(out) / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD))
+    method.stage_root = Path(out) / STAGES_DIR
+    return method
+
+
 def segment_scenes(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS_3D, executor: cf.Executor | None = None
                    ) -> Segmentations3D:
     """The pipeline's 3-D segmentations of every video of ``dataset`` (:meth:`Ours.segment_3d`), asked for
     with the dataset's ground truth guarded; its stages live in ``out``'s evaluate layout (shared with
     ``evaluate --method ours`` runs there). ``executor`` runs the per-video stages, matching and registration
     tasks (e.g. Ray); None: the stages in this process, matching and registrations in a local process pool."""
-    method = Ours(config, Path(out) / WORK_DIR.format(name=Ours.name, dataset=dataset.name, fold=FOLD))
-    method.stage_root = Path(out) / STAGES_DIR
+    method = table2_pipeline(dataset, config, out)
     method.executor = executor
     with ground_truth_forbidden(dataset.root):
         return method.segment_3d([dataset.video(v) for v in dataset.video_ids], rows)

@@ -8,8 +8,9 @@ text around it is kept), ``<dataset>_iou.png`` (IoU per method, mean ± std over
 ``<dataset>_montage.png`` (a column per test frame of a few test videos: RGB, ground truth, then every 2-D
 run's prediction in a row of its own; segments coloured like the ground-truth object they are matched to,
 unmatched ones grey-blue). Runs that scored fewer folds than the dataset's most are marked in the chart and
-the montage (``name (fold 0)``).
-Output depends only on the result files and the predictions, so a rebuild is byte-identical.
+the montage (``name (fold 0)``). When ``<dataset>_report.html`` (the ``inspect`` report,
+:mod:`selfseg.leaderboards.report`) lies in the output folder, the markdown links it.
+Output depends only on the result files, the predictions and whether that report exists, so a rebuild is byte-identical.
 
 Rows: Table I lists every 2-D run except ablation variants; Table III lists runs named ``ours``
 and ``ours-<variant>`` (``evaluate --name ours-v2``); Table II lists runs with ``task = "3d"``.
@@ -38,6 +39,7 @@ from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_tex
 BEGIN = "<!-- BEGIN GENERATED (selfseg.leaderboards.build; edits inside are overwritten) -->"
 END = "<!-- END GENERATED -->"
 MONTAGE_FRAMES = 3
+REPORT_HTML = "{dataset}_report.html"  # the `inspect` report the leaderboard links when it lies next to it
 MONTAGE_TILE_W = 240
 
 # The paper's reference numbers (Prec, Recall, IoU) for (real, synthetic), from shared/paper.md.
@@ -197,7 +199,7 @@ def bar_chart(groups: dict, title: str) -> bytes:
     return buf.getvalue()
 
 
-def _palette(n: int) -> np.ndarray:
+def palette(n: int) -> np.ndarray:
     """Deterministic distinct colours (uint8 RGB) for ids 1..n; index 0 is black."""
     import colorsys
 
@@ -253,7 +255,7 @@ def montage(groups: dict, results: Path) -> bytes | None:
         labeled = dataset.labeled(vid)
         fid = labeled.frame_ids[0]  # frame 0 of a test video is always a test frame (stride from 0)
         gt = labeled.inst(fid)
-        pal = _palette(max(int(gt.max()), 1))
+        pal = palette(max(int(gt.max()), 1))
         tiles = [_tile(labeled.rgb(fid), f"{vid}/{fid:06d}"), _tile(_colour_gt(gt, pal), "ground truth")]
         for name, recs in runs:
             label = _fold_label(groups, "2d", name)
@@ -268,18 +270,27 @@ def montage(groups: dict, results: Path) -> bytes | None:
     return buf.tobytes() if ok else None
 
 
-def generated_markdown(dataset: str, groups: dict, montage_file: str | None) -> str:
-    lines = [BEGIN, "", f"## Table I: objects in RGB images ({dataset})", "",
-             "Mean ± std over folds; 95% CI by bootstrap over test videos; every 10th frame of held-out videos "
-             "unless the run's options say otherwise (see *Runs*). *paper* rows: the paper's own numbers on its data.",
-             "", *table1(groups), "", f"![IoU per method]({dataset}_iou.png)", "",
-             "## Table II: reconstructed point clouds (3-D)", "",
-             *_short_table(groups, "3d", lambda n: True, POINT_KEYS, PAPER_TABLE2), "",
-             "## Table III: ablations (runs named `ours` and `ours-<variant>`)", "",
-             *_short_table(groups, "2d", lambda n: n == "ours" or _is_ablation(n), METRIC_KEYS, PAPER_TABLE3), "",
-             "## Qualitative", ""]
+TABLES_NOTE = ("Mean ± std over folds; 95% CI by bootstrap over test videos; every 10th frame of held-out videos "
+               "unless the run's options say otherwise (see *Runs*). *paper* rows: the paper's own numbers on its data.")
+
+
+def tables(groups: dict, dataset: str) -> list[tuple[str, list[str]]]:
+    """(title, markdown lines) of Tables I, II and III, as the leaderboard and the ``inspect`` report show them."""
+    return [(f"Table I: objects in RGB images ({dataset})", table1(groups)),
+            ("Table II: reconstructed point clouds (3-D)",
+             _short_table(groups, "3d", lambda n: True, POINT_KEYS, PAPER_TABLE2)),
+            ("Table III: ablations (runs named `ours` and `ours-<variant>`)",
+             _short_table(groups, "2d", lambda n: n == "ours" or _is_ablation(n), METRIC_KEYS, PAPER_TABLE3))]
+
+
+def generated_markdown(dataset: str, groups: dict, montage_file: str | None, report_file: str | None = None) -> str:
+    (t1, lines1), (t2, lines2), (t3, lines3) = tables(groups, dataset)
+    lines = [BEGIN, "", f"## {t1}", "", TABLES_NOTE, "", *lines1, "", f"![IoU per method]({dataset}_iou.png)", "",
+             f"## {t2}", "", *lines2, "", f"## {t3}", "", *lines3, "", "## Qualitative", ""]
     lines.append(f"![RGB, ground truth and predictions]({montage_file})" if montage_file
                  else "(montage not built: the dataset folder recorded in the results is not available)")
+    if report_file:
+        lines += ["", f"3-D report (clouds, segment graphs, matches; open the file in a browser): [{report_file}]({report_file})"]
     lines += ["", "## Runs", "", *runs_table(groups), "", END]
     return "\n".join(lines) + "\n"
 
@@ -308,8 +319,10 @@ def build(results: str | Path, out: str | Path) -> list[Path]:
         if mont is not None:
             atomic_write_bytes(out / f"{dataset}_montage.png", mont)
             written.append(out / f"{dataset}_montage.png")
+        report = REPORT_HTML.format(dataset=dataset)
         text = replace_generated(md.read_text() if md.is_file() else None,
-                                 generated_markdown(dataset, groups, f"{dataset}_montage.png" if mont else None),
+                                 generated_markdown(dataset, groups, f"{dataset}_montage.png" if mont else None,
+                                                    report if (out / report).is_file() else None),
                                  f"Leaderboard: {dataset}")
         atomic_write_text(md, text)
         written.append(md)

@@ -60,6 +60,7 @@ FEATURES_NPY = "features/{video_id}.npy"  # pseudo: φ1 feature per segment (n_s
 LABELS_NPY = "labels/{video_id}.npy"  # pseudo: object pseudo-label per reconstructed point (−1 = none)
 PSEUDO_MAPS_DIR = "maps/{video_id}"  # pseudo: the pseudo-labels projected into every frame (LABEL_MAP_PNG files)
 PSEUDO_CACHE_DIR = "pseudo"  # in the method's workdir: the pseudo stage (one per set of training videos)
+PSEUDO_STAGE = ("all", "scenes")  # (stage, scene) of the pseudo stage in its cache: PSEUDO_CACHE_DIR/all/scenes
 LABEL_MAP_PNG = "{frame_id:06d}.png"  # one frame's label map in SEGMAPS_DIR or PSEUDO_MAPS_DIR (uint16, 0 = none)
 ROWS_3D = ("lccp", "lccp+symseg", "ours-matching")  # the 3-D segmentations :meth:`Ours.segment_3d` gives (Table II)
 
@@ -254,8 +255,8 @@ class Ours(EmbeddingMethodBase):
         key = {"version": STAGE_VERSION, "phi1": str(phi1), "pseudo": to_dict(cfg.pseudo),
                "feature_stride": cfg.feature_stride, "projection": to_dict(cfg.projection),
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
-        if out.is_valid("all", "scenes", key):
-            return out.path("all", "scenes")
+        if out.is_valid(*PSEUDO_STAGE, key):
+            return self.pseudo_dir()
         net = load_embedding_net(phi1, self._device)
         scenes, recons = [], []
         for v in tqdm(videos, desc="φ1 segment features", unit="video"):
@@ -269,7 +270,7 @@ class Ours(EmbeddingMethodBase):
                                             image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
                                             fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
-        with out.write("all", "scenes", key) as tmp:
+        with out.write(*PSEUDO_STAGE, key) as tmp:
             labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
             for v, scene, rec in zip(videos, scenes, recons):
                 for template, array in ((FEATURES_NPY, scene.features), (LABELS_NPY, labels[v.video_id])):
@@ -277,7 +278,11 @@ class Ours(EmbeddingMethodBase):
                     np.save(tmp / template.format(video_id=v.video_id), array)
                 write_label_maps(tmp / PSEUDO_MAPS_DIR.format(video_id=v.video_id), v, scene.points_w,
                                  labels[v.video_id], rec.T_world_cam, cfg.projection)
-        return out.path("all", "scenes")
+        return self.pseudo_dir()
+
+    def pseudo_dir(self) -> Path:
+        """The folder of the pseudo stage in the workdir (features, matches.json, diagnostics.json, labels, maps)."""
+        return StageCache(self.workdir / PSEUDO_CACHE_DIR).path(*PSEUDO_STAGE)
 
     def label_source(self, train_videos: list[Video]):
         cache = self.run_overseg(train_videos)

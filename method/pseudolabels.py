@@ -45,6 +45,8 @@ from selfseg.method.segment_graph import SegmentGraph
 # Files written to make_pseudo_labels' out_dir.
 MATCHES_JSON = "matches.json"  # every non-empty match: maps, J, T1, registration, node decisions; merged groups
 DIAGNOSTICS_JSON = "diagnostics.json"  # what matching and pruning did, stage by stage (:func:`diagnostics`)
+# node-pair rejection reasons in the order pruning applies them (criterion 1, 2, 3)
+REJECTION_ORDER = ("cost_above_T1", "no_mapped_edge", "registration_failed", "precision_recall", "isolation")
 
 
 @dataclass
@@ -114,6 +116,14 @@ def merge_segments(n_segments: Sequence[int], decisions: Sequence[MatchDecision]
     return out
 
 
+def match_outcome(n_merged_edges: int, rejected_reasons: Sequence[str]) -> str:
+    """A decision's fate as :func:`diagnostics` counts it: "merged" with an accepted edge, else the earliest
+    criterion among its rejected node pairs' reasons (:data:`REJECTION_ORDER`), else "no_accepted_edge"."""
+    if n_merged_edges:
+        return "merged"
+    return min(rejected_reasons, key=REJECTION_ORDER.index) if rejected_reasons else "no_accepted_edge"
+
+
 def diagnostics(scene_ids: Sequence[str], graphs: Sequence[SceneGraph], stats: dict,
                 decisions: Sequence[MatchDecision], objects: Sequence[np.ndarray]) -> dict:
     """What matching and pruning did (``diagnostics.json``).
@@ -137,14 +147,7 @@ def diagnostics(scene_ids: Sequence[str], graphs: Sequence[SceneGraph], stats: d
     for d in decisions:
         reasons.update(p.reason for p in d.pairs)
         edges = d.accepted_edges()
-        bad = [p.reason for p in d.pairs if not p.accepted]
-        if edges:
-            outcome["merged"] += 1
-        elif bad:
-            order = ("cost_above_T1", "no_mapped_edge", "registration_failed", "precision_recall", "isolation")
-            outcome[min(bad, key=order.index)] += 1
-        else:
-            outcome["no_accepted_edge"] += 1
+        outcome[match_outcome(len(edges), [p.reason for p in d.pairs if not p.accepted])] += 1
         a, b = scene_ids[d.src_scene], scene_ids[d.tgt_scene]
         for (i, j), (k, l) in edges:
             within[a].add((min(i, j), max(i, j)))

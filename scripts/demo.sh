@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The demo on the tiny preset: generate data, evaluate every method under the paper's protocol,
-# score the 3D segmentations (Table II), build the leaderboard under RUN_DIR/leaderboards and print it.
+# score the 3D segmentations (Table II), build the leaderboard and the 3-D report (inspect) under RUN_DIR/leaderboards
+# and print the leaderboard.
 # Usage: scripts/demo.sh [RUN_DIR]   (default runs/demo; every step resumes from what is on disk)
 # Everything goes under RUN_DIR: the committed leaderboards/ are rebuilt only by `make leaderboards`.
 set -euo pipefail
@@ -33,6 +34,9 @@ done
 $BIN/evaluate3d --data "$DATA" --config configs/ours-tiny.yaml --out "$RESULTS"
 
 BOARDS=$RUN/leaderboards
-$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out "$BOARDS"
 name=$($BIN/python -c "import sys; from selfseg.dataset import Dataset; print(Dataset(sys.argv[1]).name)" "$DATA")
+# the 3-D report first: the leaderboard links it when it lies next to it
+$BIN/inspect "$RESULTS" --dataset "$name" --out "$BOARDS/${name}_report.html"
+$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out "$BOARDS"
 cat "$BOARDS/$name.md"
+echo "3-D report: xdg-open $BOARDS/${name}_report.html"
