@@ -37,7 +37,7 @@ from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
 from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, TrainConfig, _latest_checkpoint,
-                                  _save_checkpoint, _save_torch, resolve_device)
+                                  _save_checkpoint, _save_torch, drop_checkpoints, resolve_device)
 from selfseg.method_api import Method
 
 TRAIN_DIR = "{method}-{key_hash}"  # in the method's workdir: its training run (files: selfseg.method.train)
@@ -327,8 +327,10 @@ def final_centroids(net: nn.Module, frames: UnlabeledFrames, sched: Schedule, cf
 
 
 def save_final(path: Path, key: dict, **tensors: Any) -> None:
-    """Atomically save the final state of a method (state dicts, centroids) under its key."""
+    """Atomically save the final state of a method (state dicts, centroids) under its key, then delete the
+    resumable checkpoints of its folder."""
     _save_torch(path, {"key_hash": hash_json(key), **tensors})
+    drop_checkpoints(path.parent)
 
 
 def training_key(cfg: SemanticConfig) -> dict:

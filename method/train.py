@@ -13,7 +13,7 @@ and ``OMP_NUM_THREADS``. :func:`begin_training` applies it, and it stays set for
 follows in the same process (evaluate's method process).
 
 Files in ``out_dir`` (templates below, shared by the baselines' trainers): ``checkpoints/step_NNNNNN.pt``
-(only the latest is kept), ``weights.pt`` (final; a finished run is not retrained), ``training_log.json``
+(only the latest is kept; deleted once ``weights.pt`` is written), ``weights.pt`` (final; a finished run is not retrained), ``training_log.json``
 and ``loss_curve.png``.
 ``out_dir`` must be specific to the label source: the trainer cannot tell two sources apart.
 """
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -337,6 +338,12 @@ def _latest_checkpoint(out_dir: Path) -> Path | None:
     return found[-1] if found else None
 
 
+def drop_checkpoints(out_dir: Path) -> None:
+    """Delete ``out_dir``'s checkpoints once its final weights are written: they only serve a resume, and a
+    finished run is not retrained (a 12.7 MB φ checkpoint per fold on tiny)."""
+    shutil.rmtree(out_dir / Path(CHECKPOINT_PT).parent, ignore_errors=True)
+
+
 def _save_checkpoint(out_dir: Path, step: int, state: dict) -> None:
     """Save ``state`` as the checkpoint after ``step`` steps (CHECKPOINT_PT) and delete the older ones."""
     path = out_dir / CHECKPOINT_PT.format(step=step)
@@ -428,6 +435,7 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
             _write_log(out_dir, key, losses, time.perf_counter() - t0, images, device)
     bar.close()
     _save_torch(weights, {"net_cfg": to_dict(net_cfg), "state_dict": net.state_dict(), "key_hash": hash_json(key)})
+    drop_checkpoints(out_dir)
     return weights
 
 

@@ -156,6 +156,7 @@ def test_picie_training_is_deterministic_and_resumes_exactly(tmp_path):
         assert torch.equal(mu_a, mu)
     log = json.loads((tmp_path / "c" / "training_log.json").read_text())
     assert log["loss"] == json.loads((tmp_path / "a" / "training_log.json").read_text())["loss"]
+    assert not (tmp_path / "c" / "checkpoints").exists()  # the final weights replace them
     # A finished run is loaded, not retrained; other settings are refused.
     assert torch.equal(train_picie(SyntheticFrames(crash_after=0), cfg, tmp_path / "a", progress=False)[1], mu_a)
     with pytest.raises(ValueError, match="other settings"):

@@ -268,6 +268,7 @@ def test_resumed_training_equals_unbroken_run(tmp_path):
     log_a = json.loads((tmp_path / "full" / "training_log.json").read_text())
     log_b = json.loads((tmp_path / "resumed" / "training_log.json").read_text())
     assert log_a["loss"] == log_b["loss"] and len(log_a["loss"]) == 6
+    assert not (tmp_path / "full" / "checkpoints").exists() and not (tmp_path / "resumed" / "checkpoints").exists()
     assert (tmp_path / "full" / "loss_curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
