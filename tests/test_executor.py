@@ -251,16 +251,23 @@ def test_workers_that_start_otherwise_pinned_are_refused(tmp_path):
     """A cluster whose nodes start pinned, joined by an unpinned driver: the workers would compute other bytes,
     so the run stops with one line and rc 2."""
     env = ["env", *(f"{k}={v}" for k, v in pinned_vars(dict(os.environ)).items())]
-    c = Cluster(tmp_path / "head.log", env)
+    line = _refused_on_own_cluster(tmp_path, env, [*UNPINNED_COMMAND, *TINY, "--scenes", "1", "--frames", "2",
+                                                   "--out", str(tmp_path / "d")])
+    assert "started with its numerical libraries pinned, unlike this command" in line
+
+
+def _refused_on_own_cluster(tmp_path: Path, prefix: list[str], cmd: list[str]) -> str:
+    """Run generate_scenes ``cmd`` on a cluster started behind ``prefix``; it must stop with rc 2 and one
+    ``generate_scenes:`` line, which is returned."""
+    c = Cluster(tmp_path / "head.log", prefix)
     try:
-        r = subprocess.run([*UNPINNED_COMMAND, *TINY, "--scenes", "1", "--frames", "2", "--out", str(tmp_path / "d"),
-                            "--executor", "ray", "--ray-address", c.address], capture_output=True, text=True,
+        r = subprocess.run([*cmd, "--executor", "ray", "--ray-address", c.address], capture_output=True, text=True,
                            timeout=300)
     finally:
         c.stop()
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith("generate_scenes:")]
     assert r.returncode == 2 and len(lines) == 1, r.stderr
-    assert "started with its numerical libraries pinned, unlike this command" in lines[0]
+    return lines[0]
 
 
 def test_probe_fails_when_workers_see_another_folder(tmp_path):
@@ -272,16 +279,9 @@ def test_probe_fails_when_workers_see_another_folder(tmp_path):
               str(hidden)]
     if subprocess.run([*prefix, "true"], capture_output=True).returncode != 0:
         pytest.skip("no mount namespaces here (unshare -m needs CAP_SYS_ADMIN)")
-    c = Cluster(tmp_path / "head.log", prefix)
-    try:
-        r = subprocess.run([sys.executable, "-m", "selfseg.generate.cli", *TINY, "--out", str(hidden / "data"),
-                            "--executor", "ray", "--ray-address", c.address], capture_output=True, text=True,
-                           timeout=300)
-    finally:
-        c.stop()
-    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("generate_scenes:")]
-    assert r.returncode == 2 and len(lines) == 1, r.stderr
-    assert f"{hidden}: a Ray worker on" in lines[0] and "shared by every node" in lines[0]
+    line = _refused_on_own_cluster(tmp_path, prefix, [sys.executable, "-m", "selfseg.generate.cli", *TINY, "--out",
+                                                      str(hidden / "data")])
+    assert f"{hidden}: a Ray worker on" in line and "shared by every node" in line
     assert list(hidden.iterdir()) == []
 
 
