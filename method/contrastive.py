@@ -10,7 +10,11 @@ the negatives:
   object seen in two images of a batch is then a negative of itself;
 - ``"global"``: ids are global, shared by every image of the batch (object identities, e.g. the
   supervised bound's object ids): one prototype per id over the whole batch, pulled together
-  across images, and every other id of the batch as a negative.
+  across images, and every other id of the batch as a negative;
+- ``"video"`` (**[selfseg]**, not the paper's): ids name the same 3-D segment in every frame of one
+  video, and each image carries its video (``groups``): one prototype per (video, segment) over the
+  batch, so a segment's views in two frames are pulled together, and only the segments of the
+  pixel's own video are negatives (the same object in another scene is never pushed away).
 
 Prototypes are not detached: gradients flow through them as well.
 """
@@ -20,38 +24,47 @@ import torch
 import torch.nn.functional as F
 
 
-NEGATIVES = ("image", "batch", "global")
+NEGATIVES = ("image", "batch", "global", "video")
 
 
-def segment_prototypes(emb: torch.Tensor, labels: torch.Tensor, per_image: bool = True
+def segment_prototypes(emb: torch.Tensor, labels: torch.Tensor, per_image: bool = True,
+                       groups: torch.Tensor | None = None
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-segment normalised mean embeddings over a batch.
 
-    emb: B×D×H×W; labels: B×H×W long, −1 = ignore, ≥ 0 = segment id within its image
-    (``per_image``) or shared by the whole batch (not ``per_image``).
+    emb: B×D×H×W; labels: B×H×W long, −1 = ignore, ≥ 0 = segment id within its owner: its image
+    (``per_image``), its group (``groups``: B long, e.g. each image's video) or the whole batch (neither).
     Returns (z: P×D embeddings of the labelled pixels, target: P long index into the prototypes,
-    protos: N×D normalised prototypes, one per (image, segment id) pair present, or per id present
-    if not ``per_image``, pixel_image: P long image index of each pixel, proto_image: N long image
-    index of each prototype; −1 for every prototype if not ``per_image``).
+    protos: N×D normalised prototypes, one per (owner, segment id) pair present, pixel_owner: P long
+    owner of each pixel (image index, or group), proto_owner: N long owner of each prototype; −1 for
+    every pixel and prototype when ids are global to the batch).
     """
     if emb.ndim != 4 or labels.shape != (emb.shape[0],) + emb.shape[2:]:
         raise ValueError(f"emb must be B×D×H×W and labels B×H×W, got {tuple(emb.shape)} and {tuple(labels.shape)}")
     b, d = emb.shape[:2]
+    if groups is not None and tuple(groups.shape) != (b,):
+        raise ValueError(f"groups must hold one owner per image ({b}), got shape {tuple(groups.shape)}")
     labels = labels.long()
     keep = labels >= 0
     z = emb.permute(0, 2, 3, 1)[keep]  # P×D
-    image = torch.arange(b, device=labels.device).view(b, 1, 1).expand_as(labels)[keep]
+    if groups is not None:
+        owners = groups.long().to(labels.device)
+    elif per_image:
+        owners = torch.arange(b, device=labels.device)
+    else:
+        owners = torch.full((b,), -1, dtype=torch.long, device=labels.device)
+    owner = owners.view(b, 1, 1).expand_as(labels)[keep]
     stride = int(labels.max().clamp(min=0)) + 1
-    key = image * stride + labels[keep] if per_image else labels[keep]
+    key = (owner + 1) * stride + labels[keep]  # owners ≥ −1
     uniq, target = torch.unique(key, return_inverse=True)
     n = int(target.max()) + 1 if target.numel() else 0
     sums = torch.zeros(n, d, dtype=emb.dtype, device=emb.device).index_add_(0, target, z)
-    proto_image = uniq // stride if per_image else torch.full_like(uniq, -1)
-    return z, target, F.normalize(sums, dim=1), image, proto_image
+    return z, target, F.normalize(sums, dim=1), owner, uniq // stride - 1
 
 
 def prototype_contrastive_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float = 0.07, max_pixels: int = 0,
-                               generator: torch.Generator | None = None, negatives: str = "batch") -> torch.Tensor:
+                               generator: torch.Generator | None = None, negatives: str = "batch",
+                               groups: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over labelled pixels of the pixel-to-prototype InfoNCE loss (scalar).
 
     emb: B×D×H×W, L2-normalised per pixel; labels: B×H×W long (−1 = ignore/background,
@@ -59,19 +72,24 @@ def prototype_contrastive_loss(emb: torch.Tensor, labels: torch.Tensor, tau: flo
     segment in every image of the batch). Returns 0 (with a graph) if nothing is labelled.
     ``max_pixels`` > 0 bounds memory: prototypes use every pixel, but the loss is averaged over a
     random subset of that many labelled pixels (drawn with ``generator``, a CPU generator).
-    ``negatives``: "image", "batch" or "global", the scope of the softmax's denominator (module docstring).
+    ``negatives``: "image", "batch", "global" or "video", the scope of the softmax's denominator (module
+    docstring); ``groups`` (B long, each image's video) is what "video" needs and the others refuse.
     """
     if tau <= 0:
         raise ValueError(f"tau must be positive, got {tau}")
     if negatives not in NEGATIVES:
         raise ValueError(f"negatives must be one of {NEGATIVES}, got {negatives!r}")
-    z, target, protos, pixel_image, proto_image = segment_prototypes(emb, labels, per_image=negatives != "global")
+    if (groups is None) == (negatives == "video"):
+        need = "needs" if groups is None else "takes no"
+        raise ValueError(f"negatives {negatives!r} {need} groups (each image's video)")
+    z, target, protos, pixel_owner, proto_owner = segment_prototypes(emb, labels, per_image=negatives != "global",
+                                                                     groups=groups)
     if target.numel() == 0:
         return emb.sum() * 0.0
     if 0 < max_pixels < len(target):
         pick = torch.randperm(len(target), generator=generator)[:max_pixels].to(target.device)
-        z, target, pixel_image = z[pick], target[pick], pixel_image[pick]
+        z, target, pixel_owner = z[pick], target[pick], pixel_owner[pick]
     logits = z @ protos.t() / tau
-    if negatives == "image":
-        logits = logits.masked_fill(pixel_image[:, None] != proto_image[None, :], float("-inf"))
+    if negatives in ("image", "video"):
+        logits = logits.masked_fill(pixel_owner[:, None] != proto_owner[None, :], float("-inf"))
     return F.cross_entropy(logits, target)

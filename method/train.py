@@ -101,7 +101,12 @@ class TrainConfig(OptimSchedule):
     # collapsed supervised embeddings at 2000 steps on tiny and gave φ1 lower same-object cosine across
     # scenes (median .51 vs .72); README "Choices where the paper is silent". "global": label ids name the same
     # object in every frame (one prototype per object over the batch); only for label sources with global ids.
+    # "video" ([selfseg]): ids name one 3-D segment in every frame of its video; its views in a batch share a
+    # prototype, and only the segments of the same video are negatives (needs frames_per_video ≥ 2).
     negatives: str = "image"
+    # Frames drawn from each video in a batch (batch_size must be a multiple): 1 = every frame drawn
+    # independently of its video (the paper's sampling); k > 1: batch_size / k videos, k frames each.
+    frames_per_video: int = 1
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
 
@@ -113,6 +118,12 @@ class TrainConfig(OptimSchedule):
             raise ValueError(f"scale_range must be (lo, hi) with 0 < lo ≤ hi, got {self.scale_range}")
         if self.negatives not in NEGATIVES:
             raise ValueError(f"negatives must be one of {NEGATIVES}, got {self.negatives!r}")
+        if self.frames_per_video < 1 or self.batch_size % self.frames_per_video:
+            raise ValueError(f"frames_per_video must be ≥ 1 and divide batch_size {self.batch_size}, "
+                             f"got {self.frames_per_video}")
+        if self.negatives == "video" and self.frames_per_video < 2:
+            raise ValueError("negatives 'video' needs frames_per_video ≥ 2 (else no segment has two views in a "
+                             "batch)")
         if self.fg_crop_margin < 0:
             raise ValueError(f"fg_crop_margin must be ≥ 0, got {self.fg_crop_margin}")
         if not 0 <= self.rotation_deg <= 180:
@@ -144,7 +155,8 @@ class LabelSource(Protocol):
 
     Optional attributes the trainer reads: ``foreground(i)`` → bool H×W foreground mask of pair i or None
     (``TrainConfig.mask_background``; without it, the labelled pixels), and ``global_ids``: True when an id
-    names the same object in every frame (required by ``negatives: global``)."""
+    names the same object in every frame (required by ``negatives: global``); ``group(i)`` → the video
+    of pair i (required by ``frames_per_video`` > 1)."""
 
     def __len__(self) -> int: ...
 
@@ -195,6 +207,31 @@ class FrameLabelSource:
             raise ValueError(f"video {video.video_id} frame {fid}: foreground mask must be "
                              f"{video.height}×{video.width}, got {fg.shape}")
         return fg.astype(bool)
+
+    def group(self, i: int) -> str:
+        """The video of pair ``i`` (its video id)."""
+        return self.items[i][0].video_id
+
+
+def batch_items(source: LabelSource, cfg: TrainConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of one batch and each one's video: (indices, B long group index within the batch).
+
+    ``frames_per_video`` = 1: ``batch_size`` pairs drawn at random (groups: 0..B−1, each image its own);
+    k > 1: batch_size / k videos, then k frames of each (without replacement where there are enough)."""
+    k = cfg.frames_per_video
+    if k == 1:
+        idx = rng.choice(len(source), cfg.batch_size, replace=len(source) < cfg.batch_size)
+        return idx, np.arange(cfg.batch_size)
+    if not hasattr(source, "group"):
+        raise ValueError("frames_per_video > 1 needs a label source that names each pair's video (group)")
+    by_video: dict = {}
+    for i in range(len(source)):
+        by_video.setdefault(source.group(i), []).append(i)
+    videos = sorted(by_video)
+    n = cfg.batch_size // k
+    picked = rng.choice(len(videos), n, replace=len(videos) < n)
+    idx = [int(j) for v in picked for j in rng.choice(by_video[videos[v]], k, replace=len(by_video[videos[v]]) < k)]
+    return np.asarray(idx), np.repeat(np.arange(n), k)
 
 
 def begin_training(sched: TrainConfig | OptimSchedule) -> torch.device:
@@ -299,22 +336,24 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
     return np.ascontiguousarray(img.transpose(2, 0, 1)), lab
 
 
-def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The batch of ``step``: a pure function of (seed, step) → (B×3×h×w float, B×h×w long)."""
+def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The batch of ``step``: a pure function of (seed, step) → (B×3×h×w float, B×h×w long, B long group
+    index of each image: :func:`batch_items`)."""
     rng = np.random.default_rng([cfg.seed, step])
-    idx = rng.choice(len(source), cfg.batch_size, replace=len(source) < cfg.batch_size)
+    idx, groups = batch_items(source, cfg, rng)
     foreground = getattr(source, "foreground", None) if cfg.mask_background else None
     pairs = [augment(*source[int(i)], cfg, rng, None if foreground is None else foreground(int(i))) for i in idx]
-    return (torch.from_numpy(np.stack([p[0] for p in pairs])), torch.from_numpy(np.stack([p[1] for p in pairs])))
+    return (torch.from_numpy(np.stack([p[0] for p in pairs])), torch.from_numpy(np.stack([p[1] for p in pairs])),
+            torch.from_numpy(groups))
 
 
 def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: int, device: torch.device
               ) -> torch.Tensor:
     """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step))."""
-    rgb, labels = make_batch(source, cfg, step)
+    rgb, labels, groups = make_batch(source, cfg, step)
     pixel_rng = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
     return prototype_contrastive_loss(net(rgb.to(device)), labels.to(device), cfg.tau, cfg.loss_pixels, pixel_rng,
-                                      cfg.negatives)
+                                      cfg.negatives, groups.to(device) if cfg.negatives == "video" else None)
 
 
 def _train_key(cfg: TrainConfig, net_cfg: NetConfig) -> dict:

@@ -11,14 +11,22 @@ from selfseg.method.contrastive import prototype_contrastive_loss, segment_proto
 torch.set_num_threads(2)
 
 
-def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: str = "batch") -> float:
+def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: str = "batch",
+              groups: list[int] | None = None) -> float:
     """Direct implementation: every pixel against every (image, segment) prototype of the batch
-    ("batch") or of its own image ("image"), or against one prototype per id over the batch ("global")."""
+    ("batch") or of its own image ("image"), against one prototype per id over the batch ("global"), or
+    against one prototype per (video, id) of its own video ("video", ``groups``: each image's video)."""
     protos = []
     if negatives == "global":
         for s in sorted(set(labels.flatten().tolist()) - {-1}):
             m = emb.permute(1, 0, 2, 3)[:, labels == s].mean(1)
             protos.append(((None, s), m / m.norm()))
+    elif negatives == "video":
+        for g in sorted(set(groups)):
+            mine = torch.tensor([x == g for x in groups])
+            for s in sorted(set(labels[mine].flatten().tolist()) - {-1}):
+                m = emb[mine].permute(1, 0, 2, 3)[:, labels[mine] == s].mean(1)
+                protos.append(((g, s), m / m.norm()))
     else:
         for b in range(emb.shape[0]):
             for s in sorted(set(labels[b].flatten().tolist()) - {-1}):
@@ -32,9 +40,11 @@ def loop_loss(emb: torch.Tensor, labels: torch.Tensor, tau: float, negatives: st
                 if s < 0:
                     continue
                 z = emb[b, :, y, x]
-                logits = {k: float(z @ p) / tau for k, p in protos if negatives != "image" or k[0] == b}
+                owner = {"global": None, "video": None if groups is None else groups[b]}.get(negatives, b)
+                scoped = negatives in ("image", "video")
+                logits = {k: float(z @ p) / tau for k, p in protos if not scoped or k[0] == owner}
                 denom = sum(math.exp(v) for v in logits.values())
-                total += -(logits[(None if negatives == "global" else b, s)] - math.log(denom))
+                total += -(logits[(owner, s)] - math.log(denom))
                 count += 1
     return total / count
 
@@ -50,6 +60,9 @@ def test_loss_matches_direct_loop():
         for negatives in ("batch", "image", "global"):
             got = prototype_contrastive_loss(emb, labels, tau, negatives=negatives).item()
             assert got == pytest.approx(loop_loss(emb, labels, tau, negatives), rel=1e-9)
+        for groups in ([0, 0, 1], [1, 0, 1], [0, 0, 0]):
+            got = prototype_contrastive_loss(emb, labels, tau, negatives="video", groups=torch.tensor(groups)).item()
+            assert got == pytest.approx(loop_loss(emb, labels, tau, "video", groups), rel=1e-9)
     # the scopes differ: per-image negatives leave out the other images' segments
     assert prototype_contrastive_loss(emb, labels, negatives="image") < prototype_contrastive_loss(emb, labels)
 
@@ -105,6 +118,34 @@ def test_global_negatives_pull_the_same_object_together_across_images():
     want = (nll(1 / math.sqrt(2), 0) + nll(1, 0)) / 2  # half the pixels are object 0's
     assert prototype_contrastive_loss(apart, labs, tau=0.5, negatives="global").item() == pytest.approx(want, rel=1e-12)
     assert prototype_contrastive_loss(apart, labs, tau=0.5, negatives="image").item() == pytest.approx(alone, rel=1e-12)
+
+
+def test_video_negatives_pull_a_segments_views_together_and_leave_other_videos_alone():
+    """Images 0, 1: two views of video A (segments 0, 1); image 2: video B with the same ids and the same
+    embeddings as A's first view. Video scope: A's two views share a prototype per segment (when they
+    look alike the loss is one image's), and B's segments are no negatives of A's pixels (adding B
+    changes nothing); batch negatives push every copy apart."""
+    e = torch.eye(3, dtype=torch.float64)
+    one = torch.zeros(1, 3, 2, 4, dtype=torch.float64)
+    one[0, :, :, :2], one[0, :, :, 2:] = e[0].view(3, 1, 1), e[1].view(3, 1, 1)
+    lab = torch.zeros(1, 2, 4, dtype=torch.long)
+    lab[0, :, 2:] = 1
+    alone = prototype_contrastive_loss(one, lab, tau=0.5, negatives="image").item()
+    three, labs = one.repeat(3, 1, 1, 1), lab.repeat(3, 1, 1)
+    groups = torch.tensor([0, 0, 1])
+    assert prototype_contrastive_loss(three, labs, tau=0.5, negatives="video", groups=groups).item() == \
+        pytest.approx(alone, rel=1e-12)
+    assert prototype_contrastive_loss(three, labs, tau=0.5, negatives="batch").item() > alone + 0.5
+    apart = three.clone()
+    apart[1, :, :, :2] = e[2].view(3, 1, 1)  # segment 0 of A looks e2 in A's second view: one prototype (e0+e2)/√2
+    nll = lambda own, other: math.log(1 + math.exp((other - own) / 0.5))  # noqa: E731  two prototypes
+    want = (2 * nll(1 / math.sqrt(2), 0) + 2 * nll(1, 0) + 2 * nll(1, 0)) / 6  # A's seg 0, A's seg 1, B
+    assert prototype_contrastive_loss(apart, labs, tau=0.5, negatives="video", groups=groups).item() == \
+        pytest.approx(want, rel=1e-12)
+    with pytest.raises(ValueError, match="needs groups"):
+        prototype_contrastive_loss(three, labs, negatives="video")
+    with pytest.raises(ValueError, match="takes no groups"):
+        prototype_contrastive_loss(three, labs, negatives="image", groups=groups)
 
 
 def test_unknown_negatives_scope_is_refused():

@@ -13,7 +13,7 @@ from selfseg.method.embed_method import EmbeddingMethodConfig
 from selfseg.method.features import embed_frames, foreground_box, mask_input, segment_features
 from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
-from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, load_embedding_net, make_batch,
+from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, batch_items, load_embedding_net, make_batch,
                                   train_embedding)
 from selfseg.registry import get_method_class
 
@@ -232,16 +232,63 @@ def test_make_batch_masks_with_the_sources_foreground(analytic_dataset):
     fg = src.foreground(0)
     assert 0 < fg.sum() < (src[0][1] >= 0).sum()
     cfg = _plain(mask_background=True, crop=(video.height, video.width), batch_size=2)
-    rgb, lab = make_batch(src, cfg, step=0)
+    rgb, lab, _ = make_batch(src, cfg, step=0)
     for i in range(2):
         assert np.array_equal(lab[i].numpy(), np.where(fg, src[0][1], -1))
         assert torch.all(rgb[i][:, torch.from_numpy(~fg)] == torch.tensor(RGB_MEAN).view(3, 1))
-    rgb, lab = make_batch(src, _plain(crop=(video.height, video.width), batch_size=1), step=0)  # off: not read
+    rgb, lab, _ = make_batch(src, _plain(crop=(video.height, video.width), batch_size=1), step=0)  # off: not read
     assert np.array_equal(lab[0].numpy(), src[0][1])
     bad = FrameLabelSource([(video, fid, labels)], foreground=lambda v, f: np.ones((3, 3), bool))
     with pytest.raises(ValueError, match="foreground mask"):
         bad.foreground(0)
     assert FrameLabelSource([(video, fid, labels)]).foreground(0) is None
+    assert src.group(0) == video.video_id
+
+
+class VideoSource(SyntheticSource):
+    """SyntheticSource whose pairs belong to videos: pair i is a frame of video ``"v{i % videos}"``."""
+
+    def __init__(self, n=12, videos=4):
+        super().__init__(n)
+        self.videos = videos
+
+    def group(self, i):
+        return f"v{i % self.videos}"
+
+
+def test_frames_per_video_draws_k_frames_of_each_of_b_over_k_videos():
+    src = VideoSource(n=12, videos=4)
+    for step in range(5):
+        cfg = tiny_cfg(batch_size=6, frames_per_video=2)
+        idx, groups = batch_items(src, cfg, np.random.default_rng([cfg.seed, step]))
+        assert groups.tolist() == [0, 0, 1, 1, 2, 2]
+        videos = [src.group(int(i)) for i in idx]
+        assert [videos[2 * j] == videos[2 * j + 1] for j in range(3)] == [True] * 3
+        assert len(set(videos)) == 3  # 3 of the 4 videos, without replacement
+        assert all(idx[2 * j] != idx[2 * j + 1] for j in range(3))  # each video has 3 frames: 2 distinct ones
+        _, labels, g = make_batch(src, cfg, step)
+        assert g.tolist() == groups.tolist() and labels.shape[0] == 6
+    idx, groups = batch_items(src, tiny_cfg(batch_size=4), np.random.default_rng(0))  # k = 1: its own group each
+    assert groups.tolist() == [0, 1, 2, 3] and len(idx) == 4
+    with pytest.raises(ValueError, match="group"):
+        batch_items(SyntheticSource(), tiny_cfg(batch_size=4, frames_per_video=2), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="divide batch_size"):
+        tiny_cfg(batch_size=6, frames_per_video=4)
+    with pytest.raises(ValueError, match="frames_per_video ≥ 2"):
+        tiny_cfg(negatives="video")
+
+
+def test_video_negatives_train_and_their_loss_differs_from_image_negatives(tmp_path):
+    """A run with negatives 'video' trains (finite, falling loss) and is another run than 'image' with the
+    same frames: the same batches (same seed and frames_per_video), another loss."""
+    src = VideoSource(n=12, videos=3)
+    logs = {}
+    for neg in ("image", "video"):
+        cfg = tiny_cfg(steps=8, batch_size=4, frames_per_video=2, negatives=neg, checkpoint_every=8)
+        train_embedding(src, cfg, SMALL_NET, tmp_path / neg, progress=False)
+        logs[neg] = json.loads((tmp_path / neg / "training_log.json").read_text())["loss"]
+    assert all(np.isfinite(logs["video"])) and np.mean(logs["video"][-3:]) < np.mean(logs["video"][:3])
+    assert logs["video"][0] != pytest.approx(logs["image"][0], rel=1e-6)
 
 
 def test_global_negatives_need_a_source_with_global_ids(tmp_path):
