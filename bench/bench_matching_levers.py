@@ -10,24 +10,21 @@ reconstruction and over-segmentation stages, and a φ1 trained with the same set
 records back: Table II's LCCP + SymSeg and after-matching rows, how many component pairs the pre-filter
 dropped, the merges with their ground-truth precision and recall, and φ1's cosine between segments of the
 same object and of different objects in different scenes. Variants are given as in
-``bench_supervised_levers.py`` (``NAME:a=1,b.c=[2,3]``). Run it on a development dataset, never on the
+``bench/levers.py`` (``NAME:a=1,b.c=[2,3]``). Run it on a development dataset, never on the
 seed-0 test data. The JSON keeps the rows of earlier calls (keyed by dataset and variant) and replaces
 those run again.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-from bench_supervised_levers import parse_variant
+from levers import parse_variant, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
 from selfseg.eval.protocol import SCORES_JSON, results_key
-from selfseg.fileio import read_json, write_json
+from selfseg.fileio import read_json
 
 ROWS = ("lccp+symseg", "ours-matching")
 
@@ -37,16 +34,7 @@ def run_variant(args, name: str, sets: list[str]) -> dict:
     out = Path(args.out) / name
     cmd = [str(Path(sys.executable).with_name("evaluate3d")), "--data", args.data, "--rows", ",".join(ROWS),
            "--out", str(out), "--quiet", "--set", f"stage_dir={Path(args.out).resolve() / '_stages'}"]
-    if args.config:
-        cmd += ["--config", args.config]
-    for s in [*args.overrides, *sets]:
-        cmd += ["--set", s]
-    print(f"[{name}] evaluate3d {' '.join(cmd[1:])}", flush=True)
-    t0 = time.perf_counter()
-    rc = subprocess.call(cmd)
-    wall_s = time.perf_counter() - t0
-    if rc != 0:
-        raise SystemExit(f"bench_matching_levers: variant {name}: evaluate3d exited with {rc}")
+    wall_s = run_variant_command("bench_matching_levers", name, cmd, args.config, [*args.overrides, *sets])
     ds = Dataset(args.data)
     key = results_key(out, ds)
     rec = {r: read_json(out / SCORES_JSON.format(dataset=key, name=r, fold="all")) for r in ROWS}
@@ -83,13 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_matching_levers: {args.data}: not a dataset (no dataset_info.json)", file=sys.stderr)
         return 2
     rows = [run_variant(args, name, sets) for name, sets in variants]
-    path = Path(args.json)
-    old = json.loads(path.read_text())["rows"] if path.is_file() else []
-    ident = lambda r: (r["dataset_hash"], r["variant"])  # noqa: E731
-    new_ids = {ident(r) for r in rows}
-    write_json(path, {"what": "graph matching under φ1 config variants through evaluate3d "
-                              "(bench/bench_matching_levers.py)",
-                      "rows": [r for r in old if ident(r) not in new_ids] + rows})
+    save_rows(args.json, rows, lambda r: (r["dataset_hash"], r["variant"]),
+              "graph matching under φ1 config variants through evaluate3d (bench/bench_matching_levers.py)")
     print(f"{'variant':<16} {'symseg IoU':>10} {'matched IoU':>11} {'prefilt':>8} {'merges':>6} {'w.P':>5} "
           f"{'w.R':>5} {'x.R':>5} {'cos same med/q75':>17} {'cos diff med/q75':>17} {'wall s':>7}")
     for r in rows:
@@ -99,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['prefiltered'] / max(1, r['component_pairs']):>8.3f} {w['merges']:>6} {w['precision']:>5.2f} "
               f"{w['recall']:>5.3f} {r['across']['recall']:>5.3f} {cs['median']:>8.2f}/{cs['q75']:<8.2f} "
               f"{cd['median']:>8.2f}/{cd['q75']:<8.2f} {r['wall_s']:>7.0f}")
-    print(f"wrote {path}")
+    print(f"wrote {args.json}")
     return 0
 
 

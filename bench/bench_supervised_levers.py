@@ -16,36 +16,14 @@ dataset, method, variant and folds) and replaces those run again.
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from levers import parse_variant, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
 from selfseg.eval.protocol import SCORES_JSON, results_key
-from selfseg.fileio import read_json, write_json
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    """"NAME:a=1,b.c=[2,3]" → ("NAME", ["a=1", "b.c=[2,3]"]): commas inside brackets stay in their value."""
-    name, _, rest = text.partition(":")
-    if not name or any(c in name for c in "/@ "):
-        raise ValueError(f"variant {text!r}: needs a NAME (no '/', '@' or space) before ':'")
-    items, depth, cur = [], 0, ""
-    for c in rest:
-        depth += (c in "[{") - (c in "]}")
-        if c == "," and depth == 0:
-            items.append(cur)
-            cur = ""
-        else:
-            cur += c
-    items.append(cur)
-    sets = [s.strip() for s in items if s.strip()]
-    bad = [s for s in sets if "=" not in s]
-    if bad:
-        raise ValueError(f"variant {text!r}: {bad} are not key=value")
-    return name, sets
+from selfseg.fileio import read_json
 
 
 def run_variant(args, name: str, sets: list[str], folds: list[int]) -> dict:
@@ -53,16 +31,7 @@ def run_variant(args, name: str, sets: list[str], folds: list[int]) -> dict:
     run_name = f"{args.method}@{name}"
     cmd = [sys.executable, "-m", "selfseg.eval.cli", "--method", args.method, "--data", args.data, "--folds",
            ",".join(map(str, folds)), "--name", run_name, "--out", args.out, "--quiet"]
-    if args.config:
-        cmd += ["--config", args.config]
-    for s in [*args.overrides, *sets]:
-        cmd += ["--set", s]
-    print(f"[{name}] {' '.join(cmd[2:])}", flush=True)
-    t0 = time.perf_counter()
-    rc = subprocess.call(cmd)
-    wall_s = time.perf_counter() - t0
-    if rc != 0:
-        raise SystemExit(f"bench_supervised_levers: variant {name}: evaluate exited with {rc}")
+    wall_s = run_variant_command("bench_supervised_levers", name, cmd, args.config, [*args.overrides, *sets])
     ds = Dataset(args.data)
     key = results_key(Path(args.out), ds)
     recs = [read_json(Path(args.out) / SCORES_JSON.format(dataset=key, name=run_name, fold=k)) for k in folds]
@@ -98,13 +67,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_supervised_levers: {args.data}: not a dataset (no dataset_info.json)", file=sys.stderr)
         return 2
     rows = [run_variant(args, name, sets, folds) for name, sets in variants]
-    path = Path(args.json)
-    old = json.loads(path.read_text())["rows"] if path.is_file() else []
     ident = lambda r: (r["dataset_hash"], r["method"], r["variant"], tuple(r["folds"]))  # noqa: E731
-    new_ids = {ident(r) for r in rows}
-    allrows = [r for r in old if ident(r) not in new_ids] + rows
-    write_json(path, {"what": "IoU of named config variants through evaluate (bench/bench_supervised_levers.py)",
-                      "rows": allrows})
+    save_rows(args.json, rows, ident,
+              "IoU of named config variants through evaluate (bench/bench_supervised_levers.py)")
     print(f"{'variant':<24} {'method':<12} {'folds':<6} {'IoU per fold':<22} {'mean':>5} {'P':>5} {'R':>5} "
           f"{'wall s':>7}  sets")
     for r in rows:
@@ -112,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['variant']:<24} {r['method']:<12} {','.join(map(str, r['folds'])):<6} {per:<22} "
               f"{r['iou_mean']:.3f} {r['precision_mean']:.3f} {r['recall_mean']:.3f} {r['wall_s']:>7.0f}  "
               f"{' '.join(r['sets'])}")
-    print(f"wrote {path}")
+    print(f"wrote {args.json}")
     return 0
 
 
