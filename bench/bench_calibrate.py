@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from levers import parse_variant
 
 from selfseg.config import load_config, to_dict
 from selfseg.dataset import Dataset
@@ -33,11 +34,6 @@ from selfseg.method.pipeline import OursConfig
 from selfseg.raycast import RaycastScene
 
 TARGETS = {"lccp_P_min": 0.97, "lccp_R_max": 0.85, "gt_merging_IoU_min": 0.93}
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    name, _, sets = text.partition(":")
-    return name, [s for s in sets.split(",") if s.strip()]
 
 
 def _nested(overrides: list[str]) -> dict:

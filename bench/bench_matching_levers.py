@@ -20,7 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from levers import parse_variant, run_variant_command, save_rows
+from levers import parse_inputs, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
 from selfseg.eval.protocol import SCORES_JSON, results_key
@@ -62,13 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="runs/matching-levers", help="evaluate3d's results folders (one per variant)")
     p.add_argument("--json", default="bench/results/matching_levers.json")
     args = p.parse_args(argv)
-    try:
-        variants = [parse_variant(v) for v in args.variant]
-    except ValueError as e:
-        print(f"bench_matching_levers: {e}", file=sys.stderr)
-        return 2
-    if not (Path(args.data) / "dataset_info.json").is_file():
-        print(f"bench_matching_levers: {args.data}: not a dataset (no dataset_info.json)", file=sys.stderr)
+    variants = parse_inputs("bench_matching_levers", args.variant, args.data)
+    if variants is None:
         return 2
     rows = [run_variant(args, name, sets) for name, sets in variants]
     save_rows(args.json, rows, lambda r: (r["dataset_hash"], r["variant"]),

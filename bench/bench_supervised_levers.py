@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from levers import parse_variant, run_variant_command, save_rows
+from levers import parse_inputs, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
 from selfseg.eval.protocol import SCORES_JSON, results_key
@@ -57,14 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="runs/levers", help="evaluate's results folder")
     p.add_argument("--json", default="bench/results/supervised_levers.json")
     args = p.parse_args(argv)
+    variants = parse_inputs("bench_supervised_levers", args.variant, args.data)
     try:
-        variants = [parse_variant(v) for v in args.variant]
         folds = [int(k) for k in args.folds.split(",")]
-    except ValueError as e:
-        print(f"bench_supervised_levers: {e}", file=sys.stderr)
+    except ValueError:
+        print(f"bench_supervised_levers: --folds {args.folds!r}: not comma-separated fold numbers", file=sys.stderr)
         return 2
-    if not (Path(args.data) / "dataset_info.json").is_file():
-        print(f"bench_supervised_levers: {args.data}: not a dataset (no dataset_info.json)", file=sys.stderr)
+    if variants is None:
         return 2
     rows = [run_variant(args, name, sets, folds) for name, sets in variants]
     ident = lambda r: (r["dataset_hash"], r["method"], r["variant"], tuple(r["folds"]))  # noqa: E731

@@ -3,6 +3,7 @@ variant parsing, running one variant's command, and keeping earlier rows in the 
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Callable
@@ -49,3 +50,16 @@ def save_rows(path: str | Path, rows: list[dict], ident: Callable[[dict], tuple]
     old = read_json(path)["rows"] if path.is_file() else []
     new_ids = {ident(r) for r in rows}
     write_json(path, {"what": what, "rows": [r for r in old if ident(r) not in new_ids] + rows})
+
+
+def parse_inputs(bench: str, variants: list[str], data: str) -> list[tuple[str, list[str]]] | None:
+    """The parsed ``--variant`` texts, or None after one line on stderr when one is malformed or ``data`` is
+    not a dataset folder (the bench then exits 2)."""
+    if not (Path(data) / "dataset_info.json").is_file():
+        print(f"{bench}: {data}: not a dataset (no dataset_info.json)", file=sys.stderr)
+        return None
+    try:
+        return [parse_variant(v) for v in variants]
+    except ValueError as e:
+        print(f"{bench}: {e}", file=sys.stderr)
+        return None
