@@ -5,6 +5,9 @@
 # calibrated; every step resumes from what is on disk). The methods run as two parallel streams, one per core
 # (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall time of every step goes to
 # RUN_DIR/timings.tsv.
+# KEEP_EARLIER=1 finishes a run over several sessions: a method whose folds of this dataset (same content hash) are
+# already in RUN_DIR/results, from whatever commit, is not run again (the leaderboard's Runs table names each run's
+# commit). Without it a method's finished folds are reused only at the same commit, as `evaluate` does.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/benchmark}
@@ -33,9 +36,19 @@ step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
 }
 
 step generate $BIN/generate_scenes --preset "$PRESET" --out "$DATA" --workers 2 --quiet
+# The folder this dataset's scores are filed under in RESULTS (its name, or name-hash beside another dataset's).
+KEY=$($BIN/python -c 'import sys; from pathlib import Path; from selfseg.dataset import Dataset
+from selfseg.eval.protocol import results_key; print(results_key(Path(sys.argv[1]), Dataset(sys.argv[2])))' "$RESULTS" "$DATA")
+
+kept() {  # kept NAME N: KEEP_EARLIER is set and run NAME has N fold files of this dataset in RESULTS
+  [ "${KEEP_EARLIER:-0}" = 1 ] || return 1
+  local n; n=$(find "$RESULTS/scores/$KEY/$1" -maxdepth 1 -name 'fold*.json' 2>/dev/null | wc -l)
+  [ "$n" -ge "$2" ] && echo "scripts/benchmark.sh: $1: kept from an earlier run (KEEP_EARLIER=1)"
+}
 
 evaluate() {  # evaluate NAME ARGS...: one method, 3 folds
   local m=$1; shift
+  kept "$m" 3 && return 0
   step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet "$@"
 }
 
@@ -43,8 +56,9 @@ stream_a() {  # the geometric baselines, the supervised bound, two ablations, th
   for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
   evaluate supervised --config "$SUP"
   for m in ours-v3 ours-v4; do evaluate "$m" --config "$OURS"; done
-  step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
-    --out "$DISJOINT" --workers 2 --quiet
+  { kept v1-disjoint 3 && kept uois-sim 3 && kept sdmaskrcnn-sim 3; } ||
+    step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
+      --out "$DISJOINT" --workers 2 --quiet
   evaluate v1-disjoint --config "$SUP" --set train_data="$DISJOINT"
   # Baselines B and D, trained once on the disjoint-object set with ground truth, tested zero-shot.
   for m in uois-sim sdmaskrcnn-sim; do evaluate "$m" --set train_data="$DISJOINT"; done
@@ -52,7 +66,7 @@ stream_a() {  # the geometric baselines, the supervised bound, two ablations, th
 
 stream_b() {  # ours (its φ1 is cached for V2), Table II, then baselines E and F (default schedules)
   for m in ours ours-v2; do evaluate "$m" --config "$OURS"; done
-  step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
+  kept ours-matching 1 || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
   for m in picie stego; do evaluate "$m"; done
 }
 
