@@ -15,7 +15,8 @@ process has exited, checks them, scores them and files them. Output layout under
     predictions/<name>/<dataset>/<video_id>/<frame_id:06d>.png   uint16 instance maps
     work/<name>/<dataset>/fold<k>/                the method's cache (``Method.workdir``)
     work/_views/<content hash>-<poses>/<folder>/  the unlabeled copy of the dataset that methods see
-    work/_stages/<content hash>-<poses>/          registered methods' per-video stage caches (``Method.stage_root``)
+    work/_stages/<content hash>-<poses>/          label-free registered methods' per-video stage caches (``Method.stage_root``)
+    work/<name>/<dataset>/fold<k>/_stages/        the stage cache of a registered method given labels (its fold's own)
     rejected/<dataset>/<name>/fold<k>.json        a fold whose method reached for ground truth (not scored)
     replaced/<dataset>/<name>.<pid>/              ``evaluate --replace``: the old run, until the new one finished
 
@@ -63,7 +64,8 @@ PREDICTIONS_DIR = "predictions/{name}/{dataset}"
 PREDICTION_PNG = "{video_id}/{frame_id:06d}.png"  # one frame's instance map in PREDICTIONS_DIR (and in `external`'s input)
 WORK_DIR = "work/{name}/{dataset}/fold{fold}"
 STAGES_DIR = "work/_stages"  # per-video stage caches shared by every run and fold in OUT (evaluate3d's stage_root)
-STAGE_ROOT_DIR = "work/_stages/{content_hash}-{poses}"  # registered methods' stage_root under evaluate (one dataset)
+STAGE_ROOT_DIR = "work/_stages/{content_hash}-{poses}"  # label-free registered methods' stage_root under evaluate
+LABELED_STAGE_ROOT_DIR = WORK_DIR + "/_stages"  # the stage_root of a registered method given labels: its fold's own
 METHOD_OUTPUT_DIR = "predictions/{name}/.{dataset}.fold{fold}.method"  # where the method's process writes predictions
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
@@ -282,6 +284,18 @@ def _method_prediction(output: Path, name: str, video_id: str, frame_id: int, sh
     return pred
 
 
+def method_stage_root(out: Path, dataset: Dataset, poses_given: bool, granted: str, fmt: dict) -> Path:
+    """A registered method's stage root (absolute) for one fold. Given no labels: ``STAGE_ROOT_DIR``, shared by
+    every label-free registered method and fold that sees the same videos. Given labels: its fold's own
+    ``LABELED_STAGE_ROOT_DIR``, as its work folder is, so that nothing it writes reaches a label-free method or
+    another fold; its videos' camera files then hold the dataset's poses, which the unlabeled view strips, so
+    its stage keys differ anyway, and a shared folder would be rebuilt under a reader's feet by each side."""
+    if granted != "none":
+        return (out / LABELED_STAGE_ROOT_DIR.format(**fmt)).resolve()
+    return (out / STAGE_ROOT_DIR.format(content_hash=dataset.content_hash(),
+                                        poses="poses" if poses_given else "noposes")).resolve()
+
+
 def _fold_process(ref: MethodRef, config, dataset: Dataset, view: Path, fold: int, out: Path, options: EvalOptions,
                   train_ids: list[str], test_frames: dict[str, list[int]], fg_bits: dict[str, list[np.ndarray]],
                   output: Path, progress: bool) -> dict:
@@ -293,9 +307,8 @@ def _fold_process(ref: MethodRef, config, dataset: Dataset, view: Path, fold: in
       granted, the test videos' too only for "all" (the oracle);
     * its work folder, writable: the run's ``work/<name>/<dataset>/`` (its folds share it) when it is given no
       labels, else only the fold's (no fold sees labels another fold was given, which include its test videos');
-    * a registered method: its stage root ``STAGE_ROOT_DIR`` (writable, shared with the registered methods
-      that see the same videos) and the folders its config names (``registry.CONFIG_DIRS``); a user's method:
-      no stage root (it caches in its work folder);
+    * a registered method: its stage root (:func:`stage_root`, writable) and the folders its config names
+      (``registry.CONFIG_DIRS``); a user's method: no stage root (it caches in its work folder);
     * ``output``, writable, for its predictions.
 
     Unsandboxed, the same paths are given to a plain child process; it reads the real dataset when given labels."""
@@ -305,9 +318,7 @@ def _fold_process(ref: MethodRef, config, dataset: Dataset, view: Path, fold: in
     fmt = {"name": options.name or ref.name, "dataset": results_key(out, dataset), "fold": fold}
     workdir = (out / WORK_DIR.format(**fmt)).resolve()
     workroot = workdir.parent if granted == "none" else workdir
-    poses = "poses" if options.poses_given else "noposes"
-    stage_root = None if ref.user else (out / STAGE_ROOT_DIR.format(content_hash=dataset.content_hash(),
-                                                                     poses=poses)).resolve()
+    stage_root = None if ref.user else method_stage_root(out, dataset, options.poses_given, granted, fmt)
     config_dict = None if config is None else to_dict(config)
     config_dirs = []
     for key, mode in ref.config_dirs:

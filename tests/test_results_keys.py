@@ -174,3 +174,24 @@ def test_a_changed_depth_frame_invalidates_reuse_and_the_view(analytic_dataset, 
     assert (new_view / "analytic/videos" / vid / "depth/000000.png").read_bytes() == frame.read_bytes()
     hashes = {read_json(p)["dataset"]["content_hash"] for p in (out / "scores").rglob("fold0.json")}
     assert Dataset(root).content_hash() in hashes
+
+
+def test_a_method_given_labels_gets_its_folds_own_stage_root(analytic_dataset, tmp_path):
+    """Label-free registered methods share one stage root per dataset; one given labels (ours-gt-merging) writes
+    its stages in its fold's own folder, never where a label-free method or another fold reads (measured: sharing
+    one root, its camera files with the dataset's poses gave other stage keys, and the two sides rebuilt each
+    other's stages while the other read them: 'segmaps/000055.png: missing file')."""
+    from selfseg.eval.protocol import method_stage_root
+
+    ds = Dataset(analytic_dataset)
+    fmt = lambda name, k: {"name": name, "dataset": ds.name, "fold": k}  # noqa: E731
+    shared = {method_stage_root(tmp_path, ds, False, "none", fmt(n, k)) for n in ("ours", "ours-v3") for k in (0, 1)}
+    assert len(shared) == 1
+    (shared,) = shared
+    assert shared.is_relative_to(tmp_path.resolve()) and shared.name.endswith("-noposes")
+    assert method_stage_root(tmp_path, ds, True, "none", fmt("ours", 0)) != shared
+    labeled = [method_stage_root(tmp_path, ds, False, "train", fmt("ours-gt-merging", k)) for k in (0, 1)]
+    assert labeled[0] != labeled[1]
+    for k, root in enumerate(labeled):
+        assert root == (tmp_path / "work" / "ours-gt-merging" / ds.name / f"fold{k}" / "_stages").resolve()
+        assert not root.is_relative_to(shared) and not shared.is_relative_to(root)
