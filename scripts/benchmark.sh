@@ -6,8 +6,10 @@
 # (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall time of every step goes to
 # RUN_DIR/timings.tsv.
 # KEEP_EARLIER=1 finishes a run over several sessions: a method whose folds of this dataset (same content hash) are
-# already in RUN_DIR/results, from whatever commit, is not run again (the leaderboard's Runs table names each run's
-# commit). Without it a method's finished folds are reused only at the same commit, as `evaluate` does.
+# already in RUN_DIR/results with the config it would run with now, from whatever commit, is not run again (the
+# leaderboard's Runs table names each run's commit); a method whose config changed runs again and replaces the
+# earlier run (`evaluate --replace`). Without it a method's finished folds are reused only at the same commit and
+# config, as `evaluate` does.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/benchmark}
@@ -40,23 +42,40 @@ step generate $BIN/generate_scenes --preset "$PRESET" --out "$DATA" --workers 2 
 KEY=$($BIN/python -c 'import sys; from pathlib import Path; from selfseg.dataset import Dataset
 from selfseg.eval.protocol import results_key; print(results_key(Path(sys.argv[1]), Dataset(sys.argv[2])))' "$RESULTS" "$DATA")
 
-kept() {  # kept NAME N: KEEP_EARLIER is set and run NAME has N fold files of this dataset in RESULTS
+kept() {  # kept NAME N METHOD [--config FILE] [--set K=V ...]: KEEP_EARLIER is set and run NAME has N fold files of
+  # this dataset in RESULTS, every one recorded with the config hash METHOD has under these arguments now (a changed
+  # config runs again)
   [ "${KEEP_EARLIER:-0}" = 1 ] || return 1
-  local n; n=$(find "$RESULTS/scores/$KEY/$1" -maxdepth 1 -name 'fold*.json' 2>/dev/null | wc -l)
-  [ "$n" -ge "$2" ] && echo "scripts/benchmark.sh: $1: kept from an earlier run (KEEP_EARLIER=1)"
+  local name=$1 n=$2; shift 2
+  $BIN/python - "$RESULTS/scores/$KEY/$name" "$n" "$@" <<'PY' || return 1
+import sys
+from pathlib import Path
+from selfseg.config import config_hash, load_config
+from selfseg.fileio import read_json
+from selfseg.registry import get_method_class
+folder, n, method, rest = Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4:]
+opts = dict(zip(rest[::2], rest[1::2]))
+sets = [v for k, v in zip(rest[::2], rest[1::2]) if k == "--set"]
+want = config_hash(load_config(get_method_class(method).config_cls, opts.get("--config"), sets))
+found = [read_json(f)["config_hash"] for f in sorted(folder.glob("fold*.json"))]
+sys.exit(0 if len(found) >= n and set(found) == {want} else 1)
+PY
+  echo "scripts/benchmark.sh: $name: kept from an earlier run with this config (KEEP_EARLIER=1)"
 }
 
 evaluate() {  # evaluate NAME ARGS...: one method, 3 folds
   local m=$1; shift
-  kept "$m" 3 && return 0
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet "$@"
+  kept "$m" 3 "$m" "$@" && return 0
+  local replace=(); [ "${KEEP_EARLIER:-0}" = 1 ] && replace=(--replace)
+  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet "${replace[@]}" "$@"
 }
 
 stream_a() {  # the geometric baselines, the supervised bound, two ablations, then baselines B and D
   for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
   evaluate supervised --config "$SUP"
   for m in ours-v3 ours-v4; do evaluate "$m" --config "$OURS"; done
-  { kept v1-disjoint 3 && kept uois-sim 3 && kept sdmaskrcnn-sim 3; } ||
+  { kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT" &&
+    kept uois-sim 3 uois-sim --set train_data="$DISJOINT" && kept sdmaskrcnn-sim 3 sdmaskrcnn-sim --set train_data="$DISJOINT"; } ||
     step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
       --out "$DISJOINT" --workers 2 --quiet
   evaluate v1-disjoint --config "$SUP" --set train_data="$DISJOINT"
@@ -68,7 +87,7 @@ stream_b() {  # ours (its φ1 is cached for V2), the matching step's ceiling, Ta
   # ours-gt-merging (a diagnostic that reads ground truth): φ2 as in ours on the over-segments merged by ground
   # truth, so ours-gt-merging − ours-v2 is the most a perfect matching and pruning step could add in Table I.
   for m in ours ours-v2 ours-gt-merging; do evaluate "$m" --config "$OURS"; done
-  kept ours-matching 1 || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
+  kept ours-matching 1 ours --config "$OURS" || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
   for m in picie stego; do evaluate "$m"; done
 }
 
