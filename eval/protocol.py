@@ -307,7 +307,7 @@ def _fold_process(ref: MethodRef, config, dataset: Dataset, view: Path, fold: in
       granted, the test videos' too only for "all" (the oracle);
     * its work folder, writable: the run's ``work/<name>/<dataset>/`` (its folds share it) when it is given no
       labels, else only the fold's (no fold sees labels another fold was given, which include its test videos');
-    * a registered method: its stage root (:func:`stage_root`, writable) and the folders its config names
+    * a registered method: its stage root (:func:`method_stage_root`, writable) and the folders its config names
       (``registry.CONFIG_DIRS``); a user's method: no stage root (it caches in its work folder);
     * ``output``, writable, for its predictions.
 

@@ -51,12 +51,12 @@ kept() {  # kept NAME N METHOD [--config FILE] [--set K=V ...]: KEEP_EARLIER is 
 import sys
 from pathlib import Path
 from selfseg.config import config_hash, load_config
+from selfseg.eval.cli import build_parser
 from selfseg.fileio import read_json
 from selfseg.registry import get_method_class
-folder, n, method, rest = Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4:]
-opts = dict(zip(rest[::2], rest[1::2]))
-sets = [v for k, v in zip(rest[::2], rest[1::2]) if k == "--set"]
-want = config_hash(load_config(get_method_class(method).config_cls, opts.get("--config"), sets))
+folder, n = Path(sys.argv[1]), int(sys.argv[2])
+args = build_parser().parse_args(["--method", *sys.argv[3:]])  # evaluate's own reading of the arguments
+want = config_hash(load_config(get_method_class(args.method).config_cls, args.config, args.overrides))
 found = [read_json(f)["config_hash"] for f in sorted(folder.glob("fold*.json"))]
 sys.exit(0 if len(found) >= n and set(found) == {want} else 1)
 PY
