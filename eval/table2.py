@@ -99,21 +99,31 @@ def segment_scenes(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS_3D
         return method.segment_3d([dataset.video(v) for v in dataset.video_ids], rows)
 
 
-def matching_record(dataset: Dataset, seg: Segmentations3D, gt_inst: dict[str, np.ndarray]) -> dict:
-    """The matching step's diagnostics with its ground-truth scores: merge precision/recall and the φ1 cosine
-    of same- vs different-object segment pairs across scenes (:mod:`selfseg.eval.merges`). ``gt_inst``: GT
-    instance per reconstructed point, per video."""
-    seg_inst, inst_obj, seg_object, edges, feats = {}, {}, {}, {}, {}
-    for s in seg.scenes:
+def merge_inputs(dataset: Dataset, scenes, point_objects: dict[str, np.ndarray], gt_inst: dict[str, np.ndarray]
+                 ) -> tuple[dict, dict, dict, dict]:
+    """What :func:`selfseg.eval.merges.merge_scores` takes, per video of ``scenes`` (:class:`Segmentation3D`):
+    the majority GT instance of each segment, the instance → obj_id map, each segment's object in
+    ``point_objects`` (the pseudo-label of every reconstructed point, −1 = none) and the segment graph's edges."""
+    seg_inst, inst_obj, seg_object, edges = {}, {}, {}, {}
+    for s in scenes:
         n = len(s.graph.sizes)
         labels = np.asarray(s.graph.labels)
         seg_inst[s.video_id] = segment_instances(labels, gt_inst[s.video_id], n)
         inst_obj[s.video_id] = dataset.labeled(s.video_id).instance_to_object()
         obj = np.full(n, -1, np.int64)
-        obj[labels[labels >= 0]] = s.labels["ours-matching"][labels >= 0]
+        obj[labels[labels >= 0]] = point_objects[s.video_id][labels >= 0]
         seg_object[s.video_id] = obj
         edges[s.video_id] = np.asarray(s.graph.edges)
-        feats[s.video_id] = s.features
+    return seg_inst, inst_obj, seg_object, edges
+
+
+def matching_record(dataset: Dataset, seg: Segmentations3D, gt_inst: dict[str, np.ndarray]) -> dict:
+    """The matching step's diagnostics with its ground-truth scores: merge precision/recall and the φ1 cosine
+    of same- vs different-object segment pairs across scenes (:mod:`selfseg.eval.merges`). ``gt_inst``: GT
+    instance per reconstructed point, per video."""
+    seg_inst, inst_obj, seg_object, edges = merge_inputs(
+        dataset, seg.scenes, {s.video_id: s.labels["ours-matching"] for s in seg.scenes}, gt_inst)
+    feats = {s.video_id: s.features for s in seg.scenes}
     return {**seg.diagnostics, "gt": {**merge_scores(seg.diagnostics, seg_inst, inst_obj, seg_object, edges),
                                       "cosine": cosine_by_object(feats, seg_inst, inst_obj)}}
 
