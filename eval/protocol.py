@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import importlib.metadata
 import os
 import shutil
@@ -135,8 +136,11 @@ def select_test_frames(frame_ids: list[int], stride: int, limit: int | None) -> 
     return list(frame_ids[::stride][:limit])
 
 
+@functools.cache
 def git_info() -> dict:
-    """Commit of the selfseg checkout and whether tracked files differ from it."""
+    """Commit of the selfseg checkout and whether tracked files differ from it, as this process first saw them
+    (the code it loaded): the run functions ask before any work, so a commit made while a run trains does not
+    relabel its results."""
     repo = Path(__file__).resolve().parents[1]
     try:
         commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -435,6 +439,7 @@ def run_fold(method: MethodRef | type[Method], config, dataset: Dataset, fold: i
     :class:`GroundTruthAccessError` is raised. Its predictions are read once its process has exited, checked,
     scored and written to a staging folder, which replaces each test video's folder only once the fold is
     complete (no stale frames remain)."""
+    git_info()  # the code as loaded, before the method runs
     ref = method if isinstance(method, MethodRef) else MethodRef.of_class(method)
     if options.method_needs_ground_truth and not ref.user:
         raise ConfigError(f"--method-needs-ground-truth is for a method of your own; {ref.name!r} is registered "
@@ -532,7 +537,7 @@ def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> d
         "dataset": {"name": dataset.name, "root": str(dataset.root.resolve()),
                     "format_version": dataset.info.get("format_version", FORMAT_VERSION),
                     "content_hash": dataset.content_hash(), "n_videos": len(dataset.video_ids)},
-        "git": git_info(),
+        "git": dict(git_info()),
         "versions": package_versions(),
         "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }

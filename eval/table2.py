@@ -40,7 +40,7 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
-from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, provenance, write_result
+from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, git_info, provenance, write_result
 from selfseg.executor import executor_config, shared_executor
 from selfseg.fileio import write_json
 from selfseg.guard import ground_truth_forbidden
@@ -177,6 +177,7 @@ def run_stats(dataset: Dataset, config: OursConfig, out: Path, models: dict[str,
               max_dist_m: float = GT_MAX_DIST_M, executor: cf.Executor | None = None) -> dict:
     """The data statistics of :mod:`selfseg.eval.datastats` for every video (rows ``lccp``, ``lccp+symseg``
     and ``gt-merging``), written to ``out``/:data:`STATS_JSON`; returns the record."""
+    git_info()  # the code as loaded, before any work
     rows = ("lccp", "lccp+symseg", GT_MERGING)
     seg, aligned, gt_inst = labeled_scenes(dataset, config, out, rows, models, max_dist_m, executor, gt_labels=True)
     scenes = {}
@@ -201,6 +202,7 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     ``models`` ({video_id: {obj_id: mesh in metres, model frame}}) overrides the dataset's model files
     (analytic test scenes have none). Returns the records, in the order of ``rows``.
     """
+    git_info()  # the code as loaded, before any work
     bad = [r for r in rows if r not in ROWS]
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")

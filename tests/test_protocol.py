@@ -1,5 +1,6 @@
 """The protocol: folds, what methods may see, oracle end to end, re-scoring from disk."""
 import json
+import subprocess
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -9,7 +10,8 @@ import pytest
 from selfseg.baselines.external import ExternalConfig, ExternalPredictions
 from selfseg.dataset import MASK_INST, SCENE_GT, Dataset, DatasetError, LabeledVideo, PosesNotGiven, read_inst
 from selfseg.eval.metrics import METRIC_KEYS
-from selfseg.eval.protocol import WORK_DIR, EvalOptions, fold_split, make_folds, run_fold, select_test_frames
+from selfseg.eval.protocol import (WORK_DIR, EvalOptions, fold_split, git_info, make_folds, run_fold,
+                                   select_test_frames)
 from selfseg.guard import GroundTruthAccessError
 from selfseg.method_api import Method
 from selfseg.registry import get_method_class
@@ -172,3 +174,31 @@ def test_baselines_on_a_hand_made_depth_frame():
     comps = ForegroundComponents().segment(None, 0, gt > 0)
     m = frame_metrics(comps, gt)  # boxes 1+2 merged (2800 px, box 1 = 1600 px matched), box 3 alone
     assert m["IoU"] == pytest.approx((1600 / 2800 + 0 + 1) / 3)
+
+
+def test_git_info_is_the_code_as_loaded(tmp_path, monkeypatch):
+    """A commit made while a run trains does not relabel its results: git_info answers what the process saw
+    first (GIT_DIR points git at a throwaway repository)."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+
+    def git(*args):
+        return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                              check=True, capture_output=True, text=True).stdout.strip()
+    git("init", "-q")
+    (repo / "f.txt").write_text("1")
+    git("add", "f.txt")
+    git("commit", "-qm", "first")
+    monkeypatch.setenv("GIT_DIR", str(repo / ".git"))
+    monkeypatch.setenv("GIT_WORK_TREE", str(repo))
+    git_info.cache_clear()
+    try:
+        seen = git_info()
+        assert seen == {"commit": git("rev-parse", "HEAD"), "dirty": False}
+        (repo / "f.txt").write_text("2")
+        git("commit", "-qam", "second")
+        assert git_info() == seen
+        git_info.cache_clear()
+        assert git_info()["commit"] == git("rev-parse", "HEAD") != seen["commit"]
+    finally:
+        git_info.cache_clear()
