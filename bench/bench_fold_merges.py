@@ -26,11 +26,12 @@ from selfseg.eval.table2 import labeled_scenes, merge_inputs
 from selfseg.fileio import read_json, write_json
 from selfseg.method.pipeline import LABELS_NPY, PSEUDO_CACHE_DIR, PSEUDO_STAGE, OursConfig
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
+from selfseg.stages import StageCache
 
 
 def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
     """merge_scores of one fold's pseudo stage (``fold_dir``/pseudo/all/scenes) over its training videos."""
-    stage = fold_dir / PSEUDO_CACHE_DIR / PSEUDO_STAGE[0] / PSEUDO_STAGE[1]
+    stage = StageCache(fold_dir / PSEUDO_CACHE_DIR).path(*PSEUDO_STAGE)  # where Ours.pseudo_labels wrote it
     diag = read_json(stage / DIAGNOSTICS_JSON)
     scenes = {s.video_id: s for s in seg.scenes if s.video_id in diag["scenes"]}
     point_obj = {vid: np.load(stage / LABELS_NPY.format(video_id=vid)) for vid in scenes}
