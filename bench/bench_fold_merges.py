@@ -29,9 +29,14 @@ from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
 from selfseg.stages import StageCache
 
 
+def pseudo_stage(fold_dir: Path) -> Path:
+    """A fold's pseudo-label stage folder, where :meth:`Ours.pseudo_labels` wrote it."""
+    return StageCache(fold_dir / PSEUDO_CACHE_DIR).path(*PSEUDO_STAGE)
+
+
 def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
     """merge_scores of one fold's pseudo stage (``fold_dir``/pseudo/all/scenes) over its training videos."""
-    stage = StageCache(fold_dir / PSEUDO_CACHE_DIR).path(*PSEUDO_STAGE)  # where Ours.pseudo_labels wrote it
+    stage = pseudo_stage(fold_dir)
     diag = read_json(stage / DIAGNOSTICS_JSON)
     scenes = {s.video_id: s for s in seg.scenes if s.video_id in diag["scenes"]}
     point_obj = {vid: np.load(stage / LABELS_NPY.format(video_id=vid)) for vid in scenes}
