@@ -34,6 +34,29 @@ def pseudo_stage(fold_dir: Path) -> Path:
     return StageCache(fold_dir / PSEUDO_CACHE_DIR).path(*PSEUDO_STAGE)
 
 
+def gt_labeled(dataset: Dataset, config: OursConfig, results: str):
+    """(segmentations, alignments, GT instance per point) of every video from ``evaluate3d``'s stages in RESULTS."""
+    return labeled_scenes(dataset, config, Path(results), ("lccp+symseg",), None, GT_MAX_DIST_M, None, gt_labels=True)
+
+
+def fold_dirs(bench: str, results: str, dataset: Dataset, run: str, folds: str = "") -> list[Path] | None:
+    """The fold work folders of ``run`` (only the comma-separated fold numbers ``folds``, if given); None after
+    one line on stderr when there are none."""
+    dirs = sorted(Path(results, "work", run, results_key(Path(results), dataset)).glob("fold[0-9]*"))
+    if folds:
+        dirs = [d for d in dirs if d.name[4:] in folds.split(",")]
+    if not dirs:
+        print(f"{bench}: {results}: no folds of run {run!r}", file=sys.stderr)
+    return dirs or None
+
+
+def save(path: str, what: str, data: str, dataset: Dataset, config: str, rows: list[dict]) -> None:
+    """Write the bench's rows with the dataset and config they were measured on."""
+    write_json(path, {"what": what, "data": str(Path(data).resolve()), "dataset_hash": dataset.content_hash(),
+                      "config": config, "rows": rows})
+    print(f"wrote {path}")
+
+
 def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
     """merge_scores of one fold's pseudo stage (``fold_dir``/pseudo/all/scenes) over its training videos."""
     stage = pseudo_stage(fold_dir)
@@ -60,14 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
-    seg, _, gt_inst = labeled_scenes(dataset, config, Path(args.results), ("lccp+symseg",), None, GT_MAX_DIST_M,
-                                     None, gt_labels=True)
-    key = results_key(Path(args.results), dataset)
+    seg, _, gt_inst = gt_labeled(dataset, config, args.results)
     rows = []
     for run in args.run:
-        folds = sorted(Path(args.results, "work", run, key).glob("fold[0-9]*"))
-        if not folds:
-            print(f"bench_fold_merges: {args.results}: no folds of run {run!r}", file=sys.stderr)
+        folds = fold_dirs("bench_fold_merges", args.results, dataset, run)
+        if folds is None:
             return 2
         for fold_dir in folds:
             rows.append({"run": run, "fold": fold_dir.name, **fold_scores(fold_dir, seg, gt_inst, dataset)})
@@ -77,10 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         w, a = r["within"], r["across"]
         print(f"{r['run']:<10} {r['fold']:<6} {r['merges']:>6} {f(w['precision']):>9} {f(w['recall']):>9} "
               f"{f(a['precision']):>9} {f(a['recall']):>9}")
-    write_json(args.json, {"what": "GT scores of each fold's merges (bench/bench_fold_merges.py)",
-                           "data": str(Path(args.data).resolve()), "dataset_hash": dataset.content_hash(),
-                           "config": args.config, "rows": rows})
-    print(f"wrote {args.json}")
+    save(args.json, "GT scores of each fold's merges (bench/bench_fold_merges.py)", args.data, dataset, args.config,
+         rows)
     return 0
 
 

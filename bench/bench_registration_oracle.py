@@ -26,19 +26,15 @@ RESULTS (computed there if absent; the fold's point counts are checked against t
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import pseudo_stage
+from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.merges import segment_instances
-from selfseg.eval.points import GT_MAX_DIST_M
-from selfseg.eval.protocol import results_key
-from selfseg.eval.table2 import labeled_scenes
-from selfseg.fileio import read_json, write_json
+from selfseg.fileio import read_json
 from selfseg.method.pipeline import LABELS_NPY, OursConfig
 from selfseg.method.pseudolabels import MATCHES_JSON, SceneData, segment_clouds
 from selfseg.method.registration import precision_recall, register
@@ -145,16 +141,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
-    seg, aligned, gt_inst = labeled_scenes(dataset, config, Path(args.results), ("lccp+symseg",), None,
-                                           GT_MAX_DIST_M, None, gt_labels=True)
-    key = results_key(Path(args.results), dataset)
+    seg, aligned, gt_inst = gt_labeled(dataset, config, args.results)
     rows = []
     for run in args.run:
-        folds = sorted(Path(args.results, "work", run, key).glob("fold[0-9]*"))
-        if args.folds:
-            folds = [f for f in folds if f.name[4:] in args.folds.split(",")]
-        if not folds:
-            print(f"bench_registration_oracle: {args.results}: no folds of run {run!r}", file=sys.stderr)
+        folds = fold_dirs("bench_registration_oracle", args.results, dataset, run, args.folds)
+        if folds is None:
             return 2
         rows += [{"run": run, **fold_rows(f, seg, gt_inst, aligned, dataset, config, args.restarts)} for f in folds]
     print(f"{'run':<16} {'fold':<6} {'T2':>4} {'same-obj':>8} {'pass':>5} {'misaligned':>10} {'no overlap':>10} "
@@ -165,11 +156,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{c['same_object_misaligned']:>10} {c['same_object_no_overlap']:>10} {r['wrong_matches']:>6} "
                   f"{c['wrong_pass']:>10} {c.get('same_object_pass_restarts', '–'):>22} / "
                   f"{c.get('wrong_pass_restarts', '–')}")
-    write_json(args.json, {"what": "registered matches under the found and the true transform "
-                                   "(bench/bench_registration_oracle.py)",
-                           "data": str(Path(args.data).resolve()), "dataset_hash": dataset.content_hash(),
-                           "config": args.config, "rows": rows})
-    print(f"wrote {args.json}")
+    save(args.json, "registered matches under the found and the true transform (bench/bench_registration_oracle.py)",
+         args.data, dataset, args.config, rows)
     return 0
 
 
