@@ -34,6 +34,7 @@ from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.merges import segment_instances
+from selfseg.eval.points import gt_object_poses
 from selfseg.fileio import read_json
 from selfseg.method.pipeline import LABELS_NPY, OursConfig
 from selfseg.method.pseudolabels import MATCHES_JSON, SceneData, segment_clouds
@@ -41,13 +42,6 @@ from selfseg.method.registration import precision_recall, register
 from selfseg.poses import invert_T
 
 T2_LEVELS = (0.2, 0.5, 0.9)  # registration thresholds reported (the calibrated config's .2, the paper's .9)
-
-
-def object_poses(dataset: Dataset, video_id: str) -> dict[int, np.ndarray]:
-    """{GT instance id: T_world_model} of a video (first frame's GT; scenes are static)."""
-    video = dataset.labeled(video_id)
-    f0 = video.frame_ids[0]
-    return {rec["inst_id"]: video.T_world_cam(f0) @ np.asarray(rec["T_cam_model"]) for rec in video.gt(f0)}
 
 
 def best_of_restarts(src: np.ndarray, tgt: np.ndarray, voxel_m: float, restarts: int) -> np.ndarray:
@@ -120,7 +114,7 @@ def fold_rows(fold_dir: Path, seg, gt_inst, aligned, dataset: Dataset, config: O
         clouds[vid] = segment_clouds(scene, config.pseudo.prune.max_points_per_node, config.pseudo.prune.seed)
         inst[vid] = segment_instances(s.graph.labels, gt_inst[vid], n)
         inst_obj[vid] = dataset.labeled(vid).instance_to_object()
-        poses[vid] = object_poses(dataset, vid)
+        poses[vid] = {inst_id: T for inst_id, _, T in gt_object_poses(dataset, vid)}
     align = {vid: aligned[vid][0] for vid in scenes}
     pc = config.pseudo.prune
     scored = [score_match(m, clouds, inst, inst_obj, poses, align, pc.dist_thresh_m, pc.reg_voxel_m, restarts)

@@ -32,24 +32,27 @@ def load_model_m(dataset: Dataset, obj_id: int):
     return mesh
 
 
-def gt_scene(dataset: Dataset, video_id: str, models: dict | None = None) -> RaycastScene:
-    """The video's GT objects in the world frame of its camera poses, tagged by instance id.
+def gt_object_poses(dataset: Dataset, video_id: str) -> list[tuple[int, int, np.ndarray]]:
+    """(inst_id, obj_id, T_world_model) of each GT object of a video, in the world frame of its camera poses.
 
-    Object poses come from the first frame: T_world_model = T_world_cam · T_cam_model (scenes are
-    static). ``models`` ({obj_id: mesh in metres, model frame}) overrides the dataset's PLY files.
+    Poses come from the first frame: T_world_model = T_world_cam · T_cam_model (scenes are static).
     """
     video = dataset.labeled(video_id)
     f0 = video.frame_ids[0]
     T_world_cam = video.T_world_cam(f0)
-    meshes, poses, ids = [], [], []
-    for rec in video.gt(f0):
-        obj = rec["obj_id"]
-        meshes.append(models[obj] if models is not None and obj in models else load_model_m(dataset, obj))
-        poses.append(T_world_cam @ rec["T_cam_model"])
-        ids.append(rec["inst_id"])
-    if not meshes:
+    out = [(rec["inst_id"], rec["obj_id"], T_world_cam @ np.asarray(rec["T_cam_model"])) for rec in video.gt(f0)]
+    if not out:
         raise DatasetError(f"{dataset.root}: video {video_id} has no ground-truth objects in frame {f0}")
-    return RaycastScene.from_meshes(meshes, poses, ids)
+    return out
+
+
+def gt_scene(dataset: Dataset, video_id: str, models: dict | None = None) -> RaycastScene:
+    """The video's GT objects (:func:`gt_object_poses`) in the world frame of its camera poses, tagged by
+    instance id. ``models`` ({obj_id: mesh in metres, model frame}) overrides the dataset's PLY files."""
+    objects = gt_object_poses(dataset, video_id)
+    meshes = [models[obj] if models is not None and obj in models else load_model_m(dataset, obj)
+              for _, obj, _ in objects]
+    return RaycastScene.from_meshes(meshes, [T for _, _, T in objects], [inst for inst, _, _ in objects])
 
 
 def gt_point_labels(points_world: np.ndarray, dataset: Dataset, video_id: str, max_dist_m: float = GT_MAX_DIST_M,
