@@ -16,8 +16,10 @@ Criteria, applied in the paper's order 1 → 2 → 3:
 3. **Isolation.** If a whole source component G1 matches a subgraph S = (V', E') of a target
    component with |V1| = |V'|, then every other match into that target component whose
    matched node set strictly contains V' is dropped. Victims are taken among the matches that
-   pass criterion 1; a witness must also have had every node pair accepted by criterion 2, so
-   an unverified match (e.g. a single look-alike segment) cannot veto a registered object.
+   pass criterion 1; a witness must also have registered with every node pair's precision and
+   recall ≥ ``witness_pr_thresh`` (default: T2), so an unverified match (e.g. a single look-alike
+   segment) cannot veto a registered object. A separate witness threshold lets T2 be relaxed for
+   merging (inconsistent over-segmentation) without making every registered match a witness.
 """
 from __future__ import annotations
 
@@ -40,6 +42,7 @@ class PruneConfig:
 
     alpha: float = 0.1  # criterion 1: T1 = alpha·(|V1| + |E1|)
     pr_thresh: float = 0.9  # criterion 2: per node pair precision and recall
+    witness_pr_thresh: float | None = None  # criterion 3: a witness's per node pair P and R (None: pr_thresh)
     reg_voxel_m: float = 0.006  # registration voxel (segments are a few cm)
     pr_dist_voxels: float = 2.0  # precision/recall distance threshold in voxels
     max_points_per_node: int = 3000  # deterministic subsample per segment for registration and P/R
@@ -216,7 +219,9 @@ def prune_matches(matches: Sequence[PairMatch], clouds: Callable[[int, int], np.
                                         d.node_map, np.asarray(record["T_tgt_src"]), cfg)
         d.pairs = [NodeDecision(i, k, scores[i][2], "accepted" if scores[i][2] else "precision_recall",
                                 scores[i][0], scores[i][1]) for i, k in d.node_map.items()]
-    verified = [all(p.accepted for p in decisions[n].pairs) for n in to_register]
+    wt = cfg.pr_thresh if cfg.witness_pr_thresh is None else cfg.witness_pr_thresh
+    verified = [all(p.reason == "accepted" and p.precision >= wt and p.recall >= wt for p in decisions[n].pairs)
+                for n in to_register]
     for v, w in criterion_isolation([matches[n] for n in to_register], verified).items():
         d = decisions[to_register[v]]
         d.isolation_witness = to_register[w]

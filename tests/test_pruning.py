@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from selfseg.method.matching import MatchConfig, MatchResult, PairMatch, SceneGraph, match_all, match_graphs
 from selfseg.method.pruning import PruneConfig, criterion_cost, criterion_isolation, prune_matches
 from selfseg.method.registration import precision_recall, register
-from selfseg.poses import transform_points
+from selfseg.poses import invert_T, transform_points
 
 
 def sample(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
@@ -116,3 +116,28 @@ def test_criterion_registration_rejects_wrong_shape_pair():
     assert pairs[0].accepted and pairs[0].precision >= 0.9 and pairs[0].recall >= 0.9
     assert not pairs[1].accepted and pairs[1].reason == "precision_recall"
     assert d.accepted_edges() == []  # so nothing gets merged
+
+
+def test_witness_threshold_separates_merging_from_isolation():
+    """An isolated L-shape (one segment) in scene 0 registers onto half of the target's L (P 1, R ≈ .5),
+    which contains L + knob as two segments. At T2 0 that pair merges; it witnesses criterion 3 only if
+    the witness threshold lets a half-covered pair through, and then it vetoes the L + knob match."""
+    cfg0 = PruneConfig(pr_thresh=0.0)
+    L = sample(l_shape(), 4000, 0)
+    half = L[L[:, 0] < 0]
+    knob = sample(trimesh.creation.icosphere(radius=0.02).apply_translation((-0.09, 0, 0)), 1500, 1)
+    T = rigid(4)
+    clouds = {(0, 0): transform_points(half, invert_T(T)), (1, 5): L, (1, 6): knob,
+              (2, 0): transform_points(L, T), (2, 1): transform_points(knob, T)}
+    whole = PairMatch(0, 0, 1, 0, 1, 0, MatchResult({0: 5}, [], 0.0, "lp_integral", 0.0))
+    pair = PairMatch(2, 0, 1, 0, 2, 1, MatchResult({0: 5, 1: 6}, [((0, 1), (5, 6))], 0.0, "lp_integral", 0.0))
+    get = lambda s, seg: clouds[(s, seg)]  # noqa: E731
+    d_whole, d_pair = prune_matches([whole, pair], get, cfg0, progress=False)
+    (p,) = d_whole.pairs
+    assert p.accepted and p.precision > 0.9 and p.recall < 0.7
+    assert d_pair.isolation_witness == 0 and d_pair.accepted_edges() == []
+    for wt in (0.7, 0.9):
+        d_whole, d_pair = prune_matches([whole, pair], get, PruneConfig(pr_thresh=0.0, witness_pr_thresh=wt),
+                                        progress=False)
+        assert d_whole.pairs[0].accepted and d_pair.isolation_witness is None
+        assert d_pair.accepted_edges() == [((0, 1), (5, 6))]
