@@ -20,6 +20,13 @@ Criteria, applied in the paper's order 1 → 2 → 3:
    recall ≥ ``witness_pr_thresh`` (default: T2), so an unverified match (e.g. a single look-alike
    segment) cannot veto a registered object. A separate witness threshold lets T2 be relaxed for
    merging (inconsistent over-segmentation) without making every registered match a witness.
+   With ``isolation_cover`` set (a departure from the paper, for over-segmentation that differs
+   between scenes), a witness vetoes a match only if one of the extra target nodes (V̂ minus V')
+   is not part of the witnessed object: less than ``isolation_cover`` of its points lie within
+   ``dist_thresh_m`` of the witness's source component under the witness's registration. The
+   paper's criterion assumes the isolated object splits into the same parts in both scenes; when
+   it is one segment in the source and several in the target, its other target parts are
+   covered by the registered source, while another object's segments are not.
 """
 from __future__ import annotations
 
@@ -43,6 +50,7 @@ class PruneConfig:
     alpha: float = 0.1  # criterion 1: T1 = alpha·(|V1| + |E1|)
     pr_thresh: float = 0.9  # criterion 2: per node pair precision and recall
     witness_pr_thresh: float | None = None  # criterion 3: a witness's per node pair P and R (None: pr_thresh)
+    isolation_cover: float | None = None  # criterion 3: extra nodes covered this much do not veto (None: paper)
     reg_voxel_m: float = 0.006  # registration voxel (segments are a few cm)
     pr_dist_voxels: float = 2.0  # precision/recall distance threshold in voxels
     max_points_per_node: int = 3000  # deterministic subsample per segment for registration and P/R
@@ -113,12 +121,14 @@ def criterion_cost(m: PairMatch, alpha: float) -> tuple[bool, float]:
     return m.result.cost < T1, T1
 
 
-def criterion_isolation(matches: Sequence[PairMatch], can_witness: Sequence[bool] | None = None) -> dict[int, int]:
+def criterion_isolation(matches: Sequence[PairMatch], can_witness: Sequence[bool] | None = None,
+                        explained: Callable[[int, set[int]], bool] | None = None) -> dict[int, int]:
     """Criterion 3 over ``matches``: {index of a dropped match: index of its witness}.
 
     A witness maps every node of its source component (|V1| = |V'|) into a target component
     (and has ``can_witness`` true, if given); any other match into the same target component
-    whose target node set strictly contains the witness's V' is dropped.
+    whose target node set strictly contains the witness's V' is dropped, unless
+    ``explained(witness, extra target nodes)`` says those nodes belong to the witnessed object.
     """
     by_target: dict[tuple[int, int], list[int]] = defaultdict(list)
     for n, m in enumerate(matches):
@@ -131,7 +141,8 @@ def criterion_isolation(matches: Sequence[PairMatch], can_witness: Sequence[bool
                 continue
             S = set(mw.result.node_map.values())
             for v in members:
-                if v not in dropped and v != w and S < set(matches[v].result.node_map.values()):
+                V = set(matches[v].result.node_map.values())
+                if v not in dropped and v != w and S < V and not (explained and explained(w, V - S)):
                     dropped[v] = w
     return dropped
 
@@ -222,7 +233,17 @@ def prune_matches(matches: Sequence[PairMatch], clouds: Callable[[int, int], np.
     wt = cfg.pr_thresh if cfg.witness_pr_thresh is None else cfg.witness_pr_thresh
     verified = [all(p.reason == "accepted" and p.precision >= wt and p.recall >= wt for p in decisions[n].pairs)
                 for n in to_register]
-    for v, w in criterion_isolation([matches[n] for n in to_register], verified).items():
+
+    def explained(w: int, extra: set[int]) -> bool:
+        """Every extra target node covered ≥ isolation_cover by witness w's registered source component."""
+        d = decisions[to_register[w]]
+        src = np.concatenate([clouds(d.src_scene, i) for i in d.node_map])
+        T = np.asarray(d.registration["T_tgt_src"])
+        return all(precision_recall(src, clouds(d.tgt_scene, k), T, cfg.dist_thresh_m)[1] >= cfg.isolation_cover
+                   for k in extra)
+
+    for v, w in criterion_isolation([matches[n] for n in to_register], verified,
+                                    None if cfg.isolation_cover is None else explained).items():
         d = decisions[to_register[v]]
         d.isolation_witness = to_register[w]
         for p in d.pairs:

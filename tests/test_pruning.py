@@ -141,3 +141,26 @@ def test_witness_threshold_separates_merging_from_isolation():
                                         progress=False)
         assert d_whole.pairs[0].accepted and d_pair.isolation_witness is None
         assert d_pair.accepted_edges() == [((0, 1), (5, 6))]
+
+
+def test_isolation_cover_spares_the_witnessed_objects_other_parts():
+    """Scene 0 sees an L-shape whole, as one isolated segment; scene 1 splits it into halves 5 and 6 and
+    joins a knob 7 to it. Scene 0's L matches half 5 only and so witnesses criterion 3. Scene 2's match
+    onto both halves (5, 6) is the same object split differently: with ``isolation_cover`` it survives, since
+    the registered whole L covers half 6; its match onto (5, knob 7) is dropped either way."""
+    L = sample(l_shape(), 4000, 0)
+    a, b = L[L[:, 0] < 0], L[L[:, 0] >= 0]
+    knob = sample(trimesh.creation.icosphere(radius=0.02).apply_translation((-0.09, 0, 0)), 1500, 1)
+    T0, T2 = rigid(6), rigid(7)  # rigid(5) registers the whole L onto the wrong place on half 5 (ambiguous)
+    clouds = {(0, 0): transform_points(L, T0), (1, 5): a, (1, 6): b, (1, 7): knob,
+              (2, 0): transform_points(a, T2), (2, 1): transform_points(b, T2), (2, 2): transform_points(knob, T2)}
+    res = lambda nm, e: MatchResult(nm, e, 0.0, "lp_integral", 0.0)  # noqa: E731
+    matches = [PairMatch(0, 0, 1, 0, 1, 0, res({0: 5}, [])),
+               PairMatch(2, 0, 1, 0, 2, 1, res({0: 5, 1: 6}, [((0, 1), (5, 6))])),
+               PairMatch(2, 1, 1, 0, 2, 1, res({0: 5, 2: 7}, [((0, 2), (5, 7))]))]
+    get = lambda s, seg: clouds[(s, seg)]  # noqa: E731
+    paper = prune_matches(matches, get, PruneConfig(pr_thresh=0.0), progress=False)
+    assert [d.isolation_witness for d in paper] == [None, 0, 0]
+    cover = prune_matches(matches, get, PruneConfig(pr_thresh=0.0, isolation_cover=0.5), progress=False)
+    assert [d.isolation_witness for d in cover] == [None, None, 0]
+    assert cover[1].accepted_edges() == [((0, 1), (5, 6))] and cover[2].accepted_edges() == []
