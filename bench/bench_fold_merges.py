@@ -25,7 +25,8 @@ from selfseg.eval.protocol import results_key
 from selfseg.eval.table2 import labeled_scenes, merge_inputs
 from selfseg.fileio import read_json, write_json
 from selfseg.method.pipeline import LABELS_NPY, PSEUDO_CACHE_DIR, PSEUDO_STAGE, OursConfig
-from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
+from selfseg.method.pruning import PruneConfig
+from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, SceneData, segment_clouds
 from selfseg.stages import StageCache
 
 
@@ -37,6 +38,13 @@ def pseudo_stage(fold_dir: Path) -> Path:
 def gt_labeled(dataset: Dataset, config: OursConfig, results: str):
     """(segmentations, alignments, GT instance per point) of every video from ``evaluate3d``'s stages in RESULTS."""
     return labeled_scenes(dataset, config, Path(results), ("lccp+symseg",), None, GT_MAX_DIST_M, None, gt_labels=True)
+
+
+def segment_clouds_of(scene, prune: PruneConfig) -> list[np.ndarray]:
+    """Each segment's points of an ``evaluate3d`` scene, subsampled as pruning subsamples them."""
+    n = scene.graph.n_segments
+    return segment_clouds(SceneData(scene.video_id, scene.recon.points_w, scene.graph, np.zeros((n, 1))),
+                          prune.max_points_per_node, prune.seed)
 
 
 def fold_dirs(bench: str, results: str, dataset: Dataset, run: str, folds: str = "") -> list[Path] | None:

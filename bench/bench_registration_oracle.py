@@ -29,7 +29,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save
+from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save, segment_clouds_of
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -37,7 +37,7 @@ from selfseg.eval.merges import segment_instances
 from selfseg.eval.points import gt_object_poses
 from selfseg.fileio import read_json
 from selfseg.method.pipeline import LABELS_NPY, OursConfig
-from selfseg.method.pseudolabels import MATCHES_JSON, SceneData, segment_clouds
+from selfseg.method.pseudolabels import MATCHES_JSON
 from selfseg.method.registration import precision_recall, register
 from selfseg.poses import invert_T
 
@@ -109,10 +109,8 @@ def fold_rows(fold_dir: Path, seg, gt_inst, aligned, dataset: Dataset, config: O
         if np.load(stage / LABELS_NPY.format(video_id=vid)).shape != np.shape(s.graph.labels):
             raise SystemExit(f"bench_registration_oracle: {stage}: video {vid}'s reconstruction differs from "
                              "evaluate3d's")
-        n = s.graph.n_segments
-        scene = SceneData(vid, s.recon.points_w, s.graph, np.zeros((n, 1)))
-        clouds[vid] = segment_clouds(scene, config.pseudo.prune.max_points_per_node, config.pseudo.prune.seed)
-        inst[vid] = segment_instances(s.graph.labels, gt_inst[vid], n)
+        clouds[vid] = segment_clouds_of(s, config.pseudo.prune)
+        inst[vid] = segment_instances(s.graph.labels, gt_inst[vid], s.graph.n_segments)
         inst_obj[vid] = dataset.labeled(vid).instance_to_object()
         poses[vid] = {inst_id: T for inst_id, _, T in gt_object_poses(dataset, vid)}
     align = {vid: aligned[vid][0] for vid in scenes}

@@ -9,6 +9,8 @@ are equal. The matching step's merges come from its ``diagnostics.json``
 """
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -58,6 +60,16 @@ def _ratio(a: int, b: int) -> float | None:
     return a / b if b else None
 
 
+def same_object(seg_inst: dict[str, np.ndarray], inst_obj: dict[str, dict[int, int]], a: str, i: int, b: str,
+                k: int) -> bool:
+    """Segment i of scene a and segment k of scene b show one GT object: the same instance within a scene,
+    instances of one obj_id across scenes (background, instance 0, is never one)."""
+    ia, ib = int(seg_inst[a][i]), int(seg_inst[b][k])
+    if ia == 0 or ib == 0:
+        return False
+    return ia == ib if a == b else inst_obj[a].get(ia, -1) == inst_obj[b].get(ib, -2)
+
+
 def merge_scores(diag: dict, seg_inst: dict[str, np.ndarray], inst_obj: dict[str, dict[int, int]],
                  seg_object: dict[str, np.ndarray], seg_edges: dict[str, np.ndarray]) -> dict:
     """Precision and recall of the merges.
@@ -73,11 +85,7 @@ def merge_scores(diag: dict, seg_inst: dict[str, np.ndarray], inst_obj: dict[str
       (``diag["merges"]["across"]``) whose instances are the same object (obj_id); recall = share of
       the segments whose object appears in another scene that take part in at least one correct pair.
     """
-    def same(a: str, i: int, b: str, k: int) -> bool:
-        ia, ib = int(seg_inst[a][i]), int(seg_inst[b][k])
-        if ia == 0 or ib == 0:
-            return False
-        return ia == ib if a == b else inst_obj[a].get(ia, -1) == inst_obj[b].get(ib, -2)
+    same = partial(same_object, seg_inst, inst_obj)
 
     w_pairs = [(s, i, j) for s, edges in diag["merges"]["within"].items() for i, j in edges]
     w_ok = sum(same(s, i, s, j) for s, i, j in w_pairs)
