@@ -58,6 +58,30 @@ def fold_dirs(bench: str, results: str, dataset: Dataset, run: str, folds: str =
     return dirs or None
 
 
+def fold_bench_parser(doc: str, json_default: str) -> argparse.ArgumentParser:
+    """The arguments of the benches that read runs' fold folders: --data, --config, --results, --run (repeated),
+    --folds and --json."""
+    p = argparse.ArgumentParser(description=doc.split("\n")[0])
+    p.add_argument("--data", required=True, help="a development dataset (reads its ground truth)")
+    p.add_argument("--config", required=True, help="the config the runs and evaluate3d used")
+    p.add_argument("--results", required=True, help="the runs' results folder (evaluate --out), with evaluate3d's")
+    p.add_argument("--run", action="append", required=True, help="a run name (its folds' work folders)")
+    p.add_argument("--folds", default="", help="fold numbers, comma-separated (default: every fold folder)")
+    p.add_argument("--json", default=json_default)
+    return p
+
+
+def runs_folds(bench: str, args: argparse.Namespace, dataset: Dataset) -> list[tuple[str, Path]] | None:
+    """(run, fold folder) for every ``--run`` and fold; None after one line on stderr when a run has none."""
+    out = []
+    for run in args.run:
+        folds = fold_dirs(bench, args.results, dataset, run, args.folds)
+        if folds is None:
+            return None
+        out += [(run, f) for f in folds]
+    return out
+
+
 def save(path: str, what: str, data: str, dataset: Dataset, config: str, rows: list[dict]) -> None:
     """Write the bench's rows with the dataset and config they were measured on."""
     write_json(path, {"what": what, "data": str(Path(data).resolve()), "dataset_hash": dataset.content_hash(),
@@ -82,23 +106,14 @@ def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True)
-    p.add_argument("--config", required=True, help="the config evaluate3d ran with")
-    p.add_argument("--results", required=True, help="the results folder of evaluate3d and the runs")
-    p.add_argument("--run", action="append", required=True, help="a run name (its folds' work folders)")
-    p.add_argument("--json", default="bench/results/fold_merges.json")
-    args = p.parse_args(argv)
+    args = fold_bench_parser(__doc__, "bench/results/fold_merges.json").parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
     seg, _, gt_inst = gt_labeled(dataset, config, args.results)
-    rows = []
-    for run in args.run:
-        folds = fold_dirs("bench_fold_merges", args.results, dataset, run)
-        if folds is None:
-            return 2
-        for fold_dir in folds:
-            rows.append({"run": run, "fold": fold_dir.name, **fold_scores(fold_dir, seg, gt_inst, dataset)})
+    folds = runs_folds("bench_fold_merges", args, dataset)
+    if folds is None:
+        return 2
+    rows = [{"run": run, "fold": f.name, **fold_scores(f, seg, gt_inst, dataset)} for run, f in folds]
     print(f"{'run':<10} {'fold':<6} {'merges':>6} {'within P':>9} {'within R':>9} {'across P':>9} {'across R':>9}")
     f = lambda x: "–" if x is None else f"{x:.3f}"  # noqa: E731
     for r in rows:

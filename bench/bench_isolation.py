@@ -20,13 +20,12 @@ Reads ground truth: a diagnostic for development data. Segments, reconstructions
 """
 from __future__ import annotations
 
-import argparse
 from collections import Counter
 from functools import partial
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save, segment_clouds_of
+from bench_fold_merges import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -102,23 +101,14 @@ def fold_rows(fold_dir: Path, seg, gt_inst, dataset: Dataset, config: OursConfig
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="a development dataset (reads its ground truth)")
-    p.add_argument("--config", required=True, help="the config the runs used")
-    p.add_argument("--results", required=True, help="the runs' results folder (evaluate --out)")
-    p.add_argument("--run", action="append", required=True, help="a run name (its folds' work folders)")
-    p.add_argument("--folds", default="", help="fold numbers, comma-separated (default: every fold folder)")
-    p.add_argument("--json", default="bench/results/isolation.json")
-    args = p.parse_args(argv)
+    args = fold_bench_parser(__doc__, "bench/results/isolation.json").parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
     seg, _, gt_inst = gt_labeled(dataset, config, args.results)
-    rows = []
-    for run in args.run:
-        folds = fold_dirs("bench_isolation", args.results, dataset, run, args.folds)
-        if folds is None:
-            return 2
-        rows += [{"run": run, **fold_rows(f, seg, gt_inst, dataset, config)} for f in folds]
+    folds = runs_folds("bench_isolation", args, dataset)
+    if folds is None:
+        return 2
+    rows = [{"run": run, **fold_rows(f, seg, gt_inst, dataset, config)} for run, f in folds]
     for r in rows:
         print(f"{r['run']} {r['fold']}: {sum(r['unmerged'].values())} of {r['adjacent_same_instance_pairs']} "
               "adjacent same-instance pairs unmerged")

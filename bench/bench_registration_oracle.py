@@ -25,11 +25,10 @@ RESULTS (computed there if absent; the fold's point counts are checked against t
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import fold_dirs, gt_labeled, pseudo_stage, save, segment_clouds_of
+from bench_fold_merges import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -122,24 +121,16 @@ def fold_rows(fold_dir: Path, seg, gt_inst, aligned, dataset: Dataset, config: O
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="a development dataset (reads its ground truth)")
-    p.add_argument("--config", required=True, help="the config the runs used")
-    p.add_argument("--results", required=True, help="the runs' results folder (evaluate --out)")
-    p.add_argument("--run", action="append", required=True, help="a run name (its folds' work folders)")
-    p.add_argument("--folds", default="", help="fold numbers, comma-separated (default: every fold folder)")
+    p = fold_bench_parser(__doc__, "bench/results/registration_oracle.json")
     p.add_argument("--restarts", type=int, default=0, help="also register each match from this many RANSAC seeds")
-    p.add_argument("--json", default="bench/results/registration_oracle.json")
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
     seg, aligned, gt_inst = gt_labeled(dataset, config, args.results)
-    rows = []
-    for run in args.run:
-        folds = fold_dirs("bench_registration_oracle", args.results, dataset, run, args.folds)
-        if folds is None:
-            return 2
-        rows += [{"run": run, **fold_rows(f, seg, gt_inst, aligned, dataset, config, args.restarts)} for f in folds]
+    folds = runs_folds("bench_registration_oracle", args, dataset)
+    if folds is None:
+        return 2
+    rows = [{"run": run, **fold_rows(f, seg, gt_inst, aligned, dataset, config, args.restarts)} for run, f in folds]
     print(f"{'run':<16} {'fold':<6} {'T2':>4} {'same-obj':>8} {'pass':>5} {'misaligned':>10} {'no overlap':>10} "
           f"{'wrong':>6} {'wrong pass':>10} {'restarts: pass / wrong pass':>28}")
     for r in rows:
