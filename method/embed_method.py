@@ -35,6 +35,7 @@ class EmbeddingMethodConfig:
     cluster: MeanShiftConfig = field(default_factory=MeanShiftConfig)
     frame_stride: int = 5  # training uses every n-th frame of each training video
     device: str = "auto"  # inference device ("auto" → cuda if available, else cpu)
+    test_flip: bool = False  # inference: each frame's embeddings averaged with its mirror image's (features.forward)
 
     def __post_init__(self):
         if self.frame_stride < 1:
@@ -91,7 +92,8 @@ class EmbeddingMethodBase(Method):
         train = self.network_train_config()
         boxes = None if train.crop_margin is None or fg_mask is None else [foreground_box(fg_mask, train.crop_margin)]
         masks = [fg_mask] if train.mask_background and fg_mask is not None else None
-        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes, masks)[0].float().cpu().numpy()
+        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes, masks,
+                            self.config.test_flip)[0].float().cpu().numpy()
 
     def network_train_config(self) -> TrainConfig:
         """The training settings of the network that segments (its scale and foreground crop)."""

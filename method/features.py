@@ -37,10 +37,19 @@ def mask_input(x: torch.Tensor, fg_masks: list[np.ndarray] | None) -> torch.Tens
     return torch.where(m > 0.5, x, mean)
 
 
+def forward(net: EmbeddingNet, x: torch.Tensor, flip: bool = False) -> torch.Tensor:
+    """``net(x)``; with ``flip``, the normalised mean of ``net(x)`` and the mirrored embedding of the
+    horizontally mirrored input (test-time flip averaging: mirror-equivariant, one batch of 2B)."""
+    if not flip:
+        return net(x)
+    both = net(torch.cat([x, x.flip(-1)]))
+    return F.normalize(both[:len(x)] + both[len(x):].flip(-1), dim=1)
+
+
 @torch.inference_mode()
 def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0,
                  boxes: list[tuple[int, int, int, int] | None] | None = None,
-                 fg_masks: list[np.ndarray] | None = None) -> torch.Tensor:
+                 fg_masks: list[np.ndarray] | None = None, flip: bool = False) -> torch.Tensor:
     """uint8 H×W×3 frames (same size) → B×D×H×W unit embeddings on ``device``.
 
     ``image_size`` > 0: the frames are resized so their longer side is ``image_size`` (the scale the
@@ -50,6 +59,7 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     zero vectors. A None box means the whole frame.
     ``fg_masks`` (``TrainConfig.mask_background``): bool H×W per frame; the network sees RGB_MEAN
     outside it (:func:`mask_input`, before and after resizing, as augment does).
+    ``flip``: each embedding is averaged with that of the mirrored frame (:func:`forward`).
     """
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
@@ -58,16 +68,16 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
             y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
             fg = None if fg_masks is None else [np.ascontiguousarray(fg_masks[i][y0:y1, x0:x1])]
             out[i, :, y0:y1, x0:x1] = embed_frames(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device,
-                                                   image_size, fg_masks=fg)[0]
+                                                   image_size, fg_masks=fg, flip=flip)[0]
         return out
     x = mask_input(torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0), fg_masks)
     h, w = x.shape[2:]
     if image_size <= 0 or max(h, w) == image_size:
-        return net(x)
+        return forward(net, x, flip)
     s = image_size / max(h, w)
     small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
                           align_corners=False, antialias=s < 1)
-    return F.normalize(F.interpolate(net(mask_input(small, fg_masks)), size=(h, w), mode="bilinear",
+    return F.normalize(F.interpolate(forward(net, mask_input(small, fg_masks), flip), size=(h, w), mode="bilinear",
                                      align_corners=False), dim=1)
 
 

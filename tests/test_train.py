@@ -107,6 +107,24 @@ def test_embedding_inside_a_box_equals_embedding_the_crop():
     assert float(full[:, :10].abs().max()) == 0.0 and float(full[:, :, 68:].abs().max()) == 0.0
 
 
+def test_flip_averaging_makes_the_embedding_mirror_equivariant():
+    """With ``flip``, the mirrored frame embeds to the mirrored embedding (the network alone does not), over the
+    whole frame and inside a foreground box at another scale, in unit vectors."""
+    torch.manual_seed(0)
+    net = EmbeddingNet(NetConfig(width=8, aspp_channels=8, low_level_channels=8, decoder_channels=8)).eval()
+    rgb = np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    mirror = np.ascontiguousarray(rgb[:, ::-1])
+    for size, box, mirror_box in ((0, None, None), (96, [(10, 42, 20, 68)], [(10, 42, 12, 60)])):
+        plain = embed_frames(net, [rgb], "cpu", size, box)[0]
+        assert not torch.allclose(embed_frames(net, [mirror], "cpu", size, mirror_box)[0], plain.flip(-1), atol=1e-3)
+        avg = embed_frames(net, [rgb], "cpu", size, box, flip=True)[0]
+        assert torch.allclose(embed_frames(net, [mirror], "cpu", size, mirror_box, flip=True)[0], avg.flip(-1),
+                              atol=1e-5)
+        inside = avg if box is None else avg[:, 10:42, 20:68]
+        assert torch.allclose(inside.norm(dim=0), torch.ones(inside.shape[1:]), atol=1e-5)
+        assert not torch.allclose(avg, plain, atol=1e-3)
+
+
 def test_augment_jitter_changes_colour_only_and_drops_small_segments():
     rgb = np.full((48, 64, 3), 128, np.uint8)
     lab = np.zeros((48, 64), np.int32)
