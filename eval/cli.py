@@ -29,7 +29,7 @@ from selfseg.eval.protocol import (RUN_SCORES_DIR, EvalOptions, MethodOutputErro
                                    retire_run, run_conflict, run_fold)
 from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
 from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, executor_config, shared_executor
-from selfseg.fileio import FileFormatError
+from selfseg.fileio import BusyError, FileFormatError
 from selfseg.guard import GroundTruthAccessError
 from selfseg.registry import UnknownMethodError, get_method_class, method_names
 
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evaluate: error: method {args.method!r} tried to read ground truth ({args.out / 'rejected'}): {e}",
               file=sys.stderr)
     except (UnknownMethodError, ConfigError, DatasetError, FileFormatError, FileNotFoundError, MethodOutputError,
-            ExecutorError, SandboxError) as e:
+            ExecutorError, SandboxError, BusyError) as e:
         print(f"evaluate: error: {e}", file=sys.stderr)
     except OSError as e:
         if e.errno not in (errno.ENOSPC, errno.EDQUOT):

@@ -2,10 +2,12 @@
 
 Every file selfseg writes goes through these helpers, so an interrupted run never leaves a
 half-written file behind: data goes to a temporary sibling first and is renamed into place.
+:func:`exclusive_lock` keeps two processes from working on the same output at once.
 """
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import os
@@ -75,6 +77,31 @@ def read_json(path: str | os.PathLike) -> Any:
         raise FileNotFoundError(f"{path}: file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise FileFormatError(f"{path}: not valid JSON ({e})") from None
+
+
+class BusyError(RuntimeError):
+    """Another process holds the lock on the work asked for."""
+
+
+@contextlib.contextmanager
+def exclusive_lock(path: str | os.PathLike, what: str) -> Iterator[None]:
+    """Hold an advisory lock (``flock``) on ``path`` for the block, writing this process's pid into it; raise
+    :class:`BusyError` naming ``what`` and the holder's pid at once if another process (or another open of the
+    file) holds it. The kernel drops the lock when its holder exits, so a killed run leaves no stale lock."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise BusyError(f"{what} is being run by process {holder} (lock {path}); wait for it to finish") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

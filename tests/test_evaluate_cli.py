@@ -1,8 +1,12 @@
 """The `evaluate` command: a successful run, and input errors that name the culprit and exit 2."""
+import os
+
 import numpy as np
 import pytest
 
 from selfseg.eval.cli import main
+from selfseg.eval.protocol import FOLD_LOCK, PREDICTIONS_DIR
+from selfseg.fileio import exclusive_lock
 from selfseg.writers import write_inst
 
 
@@ -124,3 +128,21 @@ def test_rerun_with_other_settings_refuses_or_replaces(analytic_dataset, tmp_pat
     frames_after = sorted(p.relative_to(preds) for p in preds.rglob("*.png"))
     assert frames_after and set(frames_after).isdisjoint(frames_before)  # only fold 2's video remains
     assert not any((tmp_path / "replaced").rglob("*.json"))
+
+
+def test_a_fold_another_process_runs_is_refused_untouched(analytic_dataset, tmp_path, capsys):
+    """While another process holds fold 0 of a run, evaluate of that fold exits 2 naming the fold and the holder and
+    leaves the other's predictions alone; fold 1 of the same run goes ahead, and fold 0 runs once it is free."""
+    args = ["--method", "fg-components", "--data", analytic_dataset, "--frame-stride", "3", "--limit", "1", "--out",
+            tmp_path, "--quiet"]
+    assert run_cli(capsys, *args, "--folds", "0")[0] == 0
+    fmt = {"dataset": "analytic", "name": "fg-components", "fold": 0}
+    preds = sorted((tmp_path / PREDICTIONS_DIR.format(**fmt)).rglob("*.png"))
+    (tmp_path / "scores/analytic/fg-components/fold0.json").unlink()  # not finished: evaluate would rerun it
+    with exclusive_lock(tmp_path / FOLD_LOCK.format(**fmt), "held by the test"):
+        code, _, err = run_cli(capsys, *args, "--folds", "0")
+        assert code == 2 and "fold 0 of run 'fg-components'" in err and f"process {os.getpid()}" in err, err
+        assert sorted((tmp_path / PREDICTIONS_DIR.format(**fmt)).rglob("*.png")) == preds and preds
+        assert run_cli(capsys, *args, "--folds", "1")[0] == 0
+    code, _, err = run_cli(capsys, *args, "--folds", "0")
+    assert code == 0 and (tmp_path / "scores/analytic/fg-components/fold0.json").is_file(), err
