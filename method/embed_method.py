@@ -84,7 +84,8 @@ class EmbeddingMethodBase(Method):
     def embed(self, rgb: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:
         """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale; with
         ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it; with
-        ``train.mask_background``, on the frame with everything outside ``fg_mask`` masked out)."""
+        ``train.mask_background``, on the frame with everything outside ``fg_mask`` masked out; with ``test_flip``,
+        averaged with the mirror image's embeddings)."""
         from selfseg.method.features import embed_frames, foreground_box
 
         if self._net is None:
