@@ -452,82 +452,89 @@ def run_fold(method: MethodRef | type[Method], config, dataset: Dataset, fold: i
     key = results_key(out, dataset)
     fmt = {"dataset": key, "name": name, "fold": fold}
     with exclusive_lock(out / FOLD_LOCK.format(**fmt), f"fold {fold} of run {name!r}"):
-        train_ids, test_ids = fold_split(dataset, fold)
-        pred_dir = out / PREDICTIONS_DIR.format(**fmt)
-        staging = pred_dir.parent / f".{pred_dir.name}.fold{fold}.partial"
-        output = out / METHOD_OUTPUT_DIR.format(**fmt)
-        for d in (staging, output):
-            shutil.rmtree(d, ignore_errors=True)
-            d.mkdir(parents=True)
+        return _run_fold_locked(ref, config, dataset, fold, out, options, progress, name, fmt)
 
-        test_frames: dict[str, list[int]] = {}
-        fg_bits: dict[str, list[np.ndarray]] = {}
-        gts: dict[tuple[str, int], np.ndarray] = {}
-        for vid in test_ids:
-            labeled = dataset.labeled(vid)
-            test_frames[vid] = select_test_frames(labeled.frame_ids, options.frame_stride, options.limit)
-            for f in test_frames[vid]:
-                gts[vid, f] = labeled.inst(f)
-            fg_bits[vid] = [np.packbits(gts[vid, f] > 0 if options.foreground == "gt"
-                                        else estimated_foreground(labeled, f))
-                            for f in test_frames[vid]]
-        granted = "train" if options.method_needs_ground_truth else ref.ground_truth
-        isolation = {"isolation": ref.isolation, "ground_truth": granted}
-        view = unlabeled_view(dataset, out, options.poses_given).resolve()
-        try:
-            reply = _fold_process(ref, config, dataset, view, fold, out, options, train_ids, test_frames, fg_bits,
-                                  output, progress)
-            attempts = [str(a) for a in reply.get("ground_truth_attempts") or []]
-            if attempts:
-                write_json(out / REJECTED_JSON.format(**fmt), {
-                    **provenance(ref.name, name, config, dataset, "2d"), "fold": fold,
-                    "options": dataclasses.asdict(options), **isolation, "ground_truth_attempts": attempts})
-                raise GroundTruthAccessError(f"method {name!r}, fold {fold}: {len(attempts)} attempt(s), first: "
-                                             f"{attempts[0]}")
-            raise_reply_error(reply, ref.name, _INPUT_ERRORS, (str(view), str(dataset.root)))
 
-            evaluator = SegmentationEvaluator(n_boot=options.n_boot, seed=options.seed)
-            score_s = 0.0
-            for vid, frames in test_frames.items():
-                for f in tqdm(frames, desc=f"{name} fold {fold}: score {vid}", unit="frame", disable=not progress):
-                    t0 = time.perf_counter()
-                    pred = _method_prediction(output, ref.name, vid, f, (dataset.height, dataset.width))
-                    evaluator.process(vid, f, pred, gts[vid, f])
-                    score_s += time.perf_counter() - t0
-                    write_inst(staging / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-        finally:
-            shutil.rmtree(output, ignore_errors=True)
-        result = evaluator.evaluate()
+def _run_fold_locked(ref: MethodRef, config, dataset: Dataset, fold: int, out: Path, options: EvalOptions,
+                     progress: bool, name: str, fmt: dict) -> dict:
+    """:func:`run_fold`'s work, once its fold lock is held (``fmt``: the fold's path fields)."""
+    key = fmt["dataset"]
+    train_ids, test_ids = fold_split(dataset, fold)
+    pred_dir = out / PREDICTIONS_DIR.format(**fmt)
+    staging = pred_dir.parent / f".{pred_dir.name}.fold{fold}.partial"
+    output = out / METHOD_OUTPUT_DIR.format(**fmt)
+    for d in (staging, output):
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
 
-        n_frames = len(gts)
-        record = {
-            **provenance(ref.name, name, config, dataset, "2d"),
-            "fold": fold,
-            "n_folds": N_FOLDS,
-            "train_videos": train_ids,
-            "test_videos": test_ids,
-            "options": dataclasses.asdict(options),
-            **isolation,
-            **result,
-            "timings": {"fit_s": round(float(reply.get("fit_s", 0.0)), 4),
-                        "ms_per_frame": round(1000 * float(reply.get("segment_s", 0.0)) / max(n_frames, 1), 4),
-                        "score_ms_per_frame": round(1000 * score_s / max(n_frames, 1), 4)},
-            "predictions_dir": str(pred_dir.resolve()),
-            "ground_truth_attempts": [],
-        }
-        record["dataset"]["key"] = key
-        if isinstance(reply.get("train_data"), dict):  # hook: a method trained on another dataset names it in fit
-            record["train_data"] = reply["train_data"]
-        for vid in test_ids:  # swap in this fold's videos: no frame of an earlier run stays behind
-            shutil.rmtree(pred_dir / vid, ignore_errors=True)
-            pred_dir.mkdir(parents=True, exist_ok=True)
-            os.replace(staging / vid, pred_dir / vid)
+    test_frames: dict[str, list[int]] = {}
+    fg_bits: dict[str, list[np.ndarray]] = {}
+    gts: dict[tuple[str, int], np.ndarray] = {}
+    for vid in test_ids:
+        labeled = dataset.labeled(vid)
+        test_frames[vid] = select_test_frames(labeled.frame_ids, options.frame_stride, options.limit)
+        for f in test_frames[vid]:
+            gts[vid, f] = labeled.inst(f)
+        fg_bits[vid] = [np.packbits(gts[vid, f] > 0 if options.foreground == "gt"
+                                    else estimated_foreground(labeled, f))
+                        for f in test_frames[vid]]
+    granted = "train" if options.method_needs_ground_truth else ref.ground_truth
+    isolation = {"isolation": ref.isolation, "ground_truth": granted}
+    view = unlabeled_view(dataset, out, options.poses_given).resolve()
+    try:
+        reply = _fold_process(ref, config, dataset, view, fold, out, options, train_ids, test_frames, fg_bits,
+                              output, progress)
+        attempts = [str(a) for a in reply.get("ground_truth_attempts") or []]
+        if attempts:
+            write_json(out / REJECTED_JSON.format(**fmt), {
+                **provenance(ref.name, name, config, dataset, "2d"), "fold": fold,
+                "options": dataclasses.asdict(options), **isolation, "ground_truth_attempts": attempts})
+            raise GroundTruthAccessError(f"method {name!r}, fold {fold}: {len(attempts)} attempt(s), first: "
+                                         f"{attempts[0]}")
+        raise_reply_error(reply, ref.name, _INPUT_ERRORS, (str(view), str(dataset.root)))
+
+        evaluator = SegmentationEvaluator(n_boot=options.n_boot, seed=options.seed)
+        score_s = 0.0
+        for vid, frames in test_frames.items():
+            for f in tqdm(frames, desc=f"{name} fold {fold}: score {vid}", unit="frame", disable=not progress):
+                t0 = time.perf_counter()
+                pred = _method_prediction(output, ref.name, vid, f, (dataset.height, dataset.width))
+                evaluator.process(vid, f, pred, gts[vid, f])
+                score_s += time.perf_counter() - t0
+                write_inst(staging / PREDICTION_PNG.format(video_id=vid, frame_id=f), pred)
+    except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
-        write_result(out, record, evaluator.frames)
-        return record
+        raise
+    finally:
+        shutil.rmtree(output, ignore_errors=True)
+    result = evaluator.evaluate()
+
+    n_frames = len(gts)
+    record = {
+        **provenance(ref.name, name, config, dataset, "2d"),
+        "fold": fold,
+        "n_folds": N_FOLDS,
+        "train_videos": train_ids,
+        "test_videos": test_ids,
+        "options": dataclasses.asdict(options),
+        **isolation,
+        **result,
+        "timings": {"fit_s": round(float(reply.get("fit_s", 0.0)), 4),
+                    "ms_per_frame": round(1000 * float(reply.get("segment_s", 0.0)) / max(n_frames, 1), 4),
+                    "score_ms_per_frame": round(1000 * score_s / max(n_frames, 1), 4)},
+        "predictions_dir": str(pred_dir.resolve()),
+        "ground_truth_attempts": [],
+    }
+    record["dataset"]["key"] = key
+    if isinstance(reply.get("train_data"), dict):  # hook: a method trained on another dataset names it in fit
+        record["train_data"] = reply["train_data"]
+    for vid in test_ids:  # swap in this fold's videos: no frame of an earlier run stays behind
+        shutil.rmtree(pred_dir / vid, ignore_errors=True)
+        pred_dir.mkdir(parents=True, exist_ok=True)
+        os.replace(staging / vid, pred_dir / vid)
+    shutil.rmtree(staging, ignore_errors=True)
+    write_result(out, record, evaluator.frames)
+    return record
 
 
 def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> dict:
