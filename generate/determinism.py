@@ -1,7 +1,7 @@
 """Cross-machine determinism of generation: pinned numerical libraries and snapped geometry.
 
-Measured (issue 24, tiny preset, physics only): on one x86-64 machine, which maths kernels the
-libraries pick at run time changes the dataset.
+Measured (tiny preset, physics only): on one x86-64 machine, which maths kernels the libraries pick at
+run time changes the dataset.
 
 * glibc's libm picks FMA variants of ``sin``, ``cos``, ``exp``, ... when the CPU has FMA and AVX2.
   Bullet calls them every step, so a machine without FMA (``GLIBC_TUNABLES=glibc.cpu.hwcaps=-FMA``)
@@ -14,6 +14,12 @@ libraries pick at run time changes the dataset.
 ``generate_scenes`` command runs itself under it (:func:`reexec_pinned`). :func:`snap` rounds
 geometry (metres) and poses to a power-of-two grid, so last-bit noise left anywhere upstream
 (another BLAS, another compiler) vanishes before physics and before anything is written.
+
+Not pinned, because it cannot be: Cycles, Embree and OpenImageDenoise choose their SIMD kernels by CPUID,
+so Cycles' RGB frames from CPUs of other types differ by 1 in a few 8-bit values per frame (measured: an
+AMD Zen 4 against an Intel Xeon with AVX-512 FP16 and against the machine of the first published tiny
+hash, PSNR 91–99 dB). Everything else, depth and masks included (Workbench), is the same bytes:
+:func:`selfseg.manifest.geometry_hash` is that part's identity.
 """
 from __future__ import annotations
 

@@ -58,6 +58,7 @@ MODELS_INFO = MODELS_DIR + "/models_info.json"
 VIDEOS_DIR = "videos"
 VIDEO_DIR = VIDEOS_DIR + "/{video_id}"
 RGB = VIDEO_DIR + "/" + FRAME_RGB
+RGB_GLOB = VIDEO_DIR.format(video_id="*") + "/rgb/*.png"  # every video's RGB frames (fnmatch pattern)
 DEPTH = VIDEO_DIR + "/" + FRAME_DEPTH
 MASK_INST = VIDEO_DIR + "/" + FRAME_MASK_INST
 SCENE_CAMERA = VIDEO_DIR + "/" + CAMERA_JSON

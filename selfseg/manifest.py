@@ -7,9 +7,17 @@ temporary files) as ``{"path": [size in bytes, sha256]}``. The dataset's identit
 files' current listing, so any changed frame changes it. Digests are reused while a file keeps its size,
 mtime and inode (a per-dataset cache under ``$SELFSEG_CACHE/stat``, default ``~/.cache/selfseg``), so the
 cheap check reads no file that did not change; :func:`verify` with ``full=True`` re-reads every byte.
+
+RGB frames are the one part of a generated dataset that depends on the CPU: Cycles, Embree and
+OpenImageDenoise choose their SIMD kernels by CPUID, and their last-bit float differences flip a few
+8-bit values per frame by 1 (PSNR above 90 dB between CPU types). Depth, masks, poses, cameras and
+meshes are byte-identical on every x86-64 CPU measured. :func:`geometry_hash` is the identity of
+everything but the RGB frames, and :func:`differences` tells a CPU-dependent RGB difference apart
+from any other.
 """
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import os
 from pathlib import Path
@@ -69,6 +77,19 @@ def manifest_hash(files: dict[str, list]) -> str:
     return hash_json(files, n=16)
 
 
+def is_rgb_frame(path: str) -> bool:
+    """Whether the manifest path (``/``-separated) is a video's RGB frame."""
+    from selfseg.dataset import RGB_GLOB  # selfseg.dataset imports this module
+
+    return fnmatch.fnmatchcase(path, RGB_GLOB)
+
+
+def geometry_hash(files: dict[str, list]) -> str:
+    """The identity of a file listing without its RGB frames (depth, masks, poses, cameras, meshes,
+    records): the part of a generated dataset that is the same on every CPU (16 hex digits)."""
+    return manifest_hash({p: v for p, v in files.items() if not is_rgb_frame(p)})
+
+
 def content_hash(root: str | os.PathLike) -> str:
     """The dataset's identity: :func:`manifest_hash` of its files as they are now (cheap scan)."""
     return manifest_hash(scan(root))
@@ -100,13 +121,27 @@ def read_manifest(root: str | os.PathLike) -> dict:
     return rec
 
 
+def differences(root: str | os.PathLike, full: bool = True) -> tuple[dict[str, list], dict[str, str]]:
+    """The stored manifest's files and ``{path: problem}`` for every file that differs from it (``missing``,
+    ``not in the manifest``, ``size differs from the manifest``, ``content differs from the manifest``);
+    ``full`` re-reads every byte."""
+    stored = read_manifest(root)["files"]
+    now = scan(root, full=full)
+    found = {p: "missing" for p in stored if p not in now}
+    found |= {p: "not in the manifest" for p in now if p not in stored}
+    found |= {p: f"{'size' if stored[p][0] != now[p][0] else 'content'} differs from the manifest"
+              for p in stored if p in now and stored[p] != now[p]}
+    return stored, dict(sorted(found.items()))
+
+
+def only_rgb_differs(found: dict[str, str]) -> bool:
+    """Whether every difference of :func:`differences` is a changed RGB frame (none missing or extra): the
+    class of difference rendering on another CPU type gives."""
+    return bool(found) and all(is_rgb_frame(p) and "differs" in k for p, k in found.items())
+
+
 def verify(root: str | os.PathLike, full: bool = True) -> tuple[str, list[str]]:
     """The stored manifest's hash and the differences of the dataset from it (``path: problem`` lines,
     empty when the data is the manifest's); ``full`` re-reads every byte."""
-    stored = read_manifest(root)["files"]
-    now = scan(root, full=full)
-    problems = [f"{p}: missing" for p in stored if p not in now]
-    problems += [f"{p}: not in the manifest" for p in now if p not in stored]
-    problems += [f"{p}: {'size' if stored[p][0] != now[p][0] else 'content'} differs from the manifest"
-                 for p in stored if p in now and stored[p] != now[p]]
-    return manifest_hash(stored), sorted(problems)
+    stored, found = differences(root, full)
+    return manifest_hash(stored), [f"{p}: {k}" for p, k in found.items()]

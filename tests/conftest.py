@@ -18,11 +18,15 @@ def analytic_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """The tiny preset with Workbench images (ground truth identical to Cycles'), generated once per
-    test session and shared by every module that needs real generated scenes."""
-    from selfseg.generate.cli import main as generate_scenes
+    test session by the ``generate_scenes`` command (so with its pinned numerical libraries, as users get it)
+    and shared by every module that needs real generated scenes."""
+    import subprocess
 
     out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
-    assert generate_scenes(["--preset", "tiny", "--renderer", "workbench", "--out", str(out), "--quiet"]) == 0
+    cmd = [sys.executable, "-m", "selfseg.generate.cli", "--preset", "tiny", "--renderer", "workbench", "--out",
+           str(out), "--workers", "2", "--quiet"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+    assert run.returncode == 0, run.stderr
     return out
 
 
