@@ -1,4 +1,4 @@
-"""Calibration sweeps for the `calibrated` preset (issue 22), on development seeds only (never seed 0).
+"""Calibration sweeps for the `calibrated` preset, on development seeds only (never seed 0).
 
     # contact only: physics drops (no rendering), touching GT pairs per scene for each layout
     .venv/bin/python bench/bench_calibrate.py layout --preset calibrated --seeds 7,11 --scenes 12 \\

@@ -1,4 +1,4 @@
-"""The data-statistics report of several datasets side by side (issue 22): one line per dataset.
+"""The data-statistics report of several datasets side by side: one line per dataset.
 
     .venv/bin/python bench/bench_datastats.py \\
         --data tiny=runs/demo/data:configs/ours-tiny.yaml \\

@@ -1,4 +1,4 @@
-"""Diagnostic, not a test: what graph matching finds with φ1 trained under named config variants (issue 22).
+"""Diagnostic, not a test: what graph matching finds with φ1 trained under named config variants.
 
     .venv/bin/python bench/bench_matching_levers.py --data DIR --config configs/ours-calibrated.yaml
         --variant NAME:key=value,key=value ... [--set KEY=VALUE ...] [--out runs/matching-levers]

@@ -1,4 +1,4 @@
-"""Data statistics: how close a dataset and its over-segmentation are to the paper's setting (issue 22).
+"""Data statistics: how close a dataset and its over-segmentation are to the paper's setting.
 
 The paper's Table II LCCP row (P .984, R .771 on its synthetic scenes) is a property of the data and the
 over-segmentation, not of any learning: LCCP almost never joins two objects there and mostly splits

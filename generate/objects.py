@@ -441,7 +441,7 @@ PAPER_SUBSET: tuple[str, ...] = ("lamp", "dumbbell", "mug", "bowl", "bottle", "p
 
 
 # ---- the `paper` library: chunky multi-part toys ------------------------------------------
-# In the spirit of the paper's HomebrewedDB toys (issue 22): 6–20 cm, every part a convex primitive at
+# In the spirit of the paper's HomebrewedDB toys: 6–20 cm, every part a convex primitive at
 # least ~2 cm thick, parts meeting at concave creases (where LCCP splits an object into parts that
 # graph matching can join again), one distinct texture per part.
 def _sphere_part(obj: str, part: str, r: float, centre, tex: tuple) -> _Part:

@@ -5,11 +5,11 @@
   reappears in about 3 of the 5 scenes and graph matching has something to merge; the camera
   orbits as close as in ``benchmark``.
 * ``small``: a quick experiment at 320×240.
-* ``benchmark``: the paper's setting at a size 2 cores can run (issue 9): 12 scenes × 120 frames at
+* ``benchmark``: the paper's setting at a size 2 cores can run: 12 scenes × 120 frames at
   320×240, 6 objects per scene drawn from 10 (six of them multi-part non-convex), so every object
   reappears in about 7 scenes; the orbit is configured closer (0.38–0.48 m), then scaled to fit the pile:
   measured camera distance 0.69–1.19 m from the orbit centre, objects 38–72 px (per-scene medians).
-* ``calibrated``: the paper's over-segmentation statistics (issue 22): 12 scenes × 120 frames at 320×240,
+* ``calibrated``: the paper's over-segmentation statistics: 12 scenes × 120 frames at 320×240,
   8 objects per scene from the 13 chunky multi-part toys of the ``paper`` library, dropped apart
   (``spread``, .25 m) so that objects rarely touch (0.54 touching pairs per scene on dev seeds 7 and 11);
   camera 0.90–1.16 m from the orbit centre, objects 35–44 px (seed 7).
@@ -62,7 +62,7 @@ class GenerateConfig:
     width: int = 160
     height: int = 120
     objects_per_scene: int = 4
-    library: str = "builtin"  # "builtin" (25 objects) or "paper" (chunky multi-part toys, issue 22)
+    library: str = "builtin"  # "builtin" (25 objects) or "paper" (chunky multi-part toys)
     objects_dir: str | None = None  # folder of user meshes; None = the `library`
     object_pool: list[str] | None = None  # names of library objects to use; None = all of them
     min_kept_fraction: float = 0.75  # re-drop a scene if fewer than this share of its objects stay on the table
@@ -106,7 +106,7 @@ PRESETS: dict[str, dict] = {
     "small": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8},
     "benchmark": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 6,
                   "object_pool": BENCHMARK_POOL, "orbit": CLOSE_ORBIT},
-    # issue 22: the paper's Table II statistics, on development seeds: the `paper` toys, contact rare
+    # the paper's Table II statistics, on development seeds: the `paper` toys, contact rare
     "calibrated": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8,
                    "library": "paper", "orbit": CLOSE_ORBIT,
                    "physics": {"layout": "spread", "drop_radius_m": 0.25, "spread_gap_m": 0.01}},

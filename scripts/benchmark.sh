@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A preset's leaderboard (issues 9 and 22): generate the data, evaluate every method under the paper's protocol
+# A preset's leaderboard (benchmark or calibrated): generate the data, evaluate every method under the paper's protocol
 # (3 folds), score the 3D segmentations (Table II) and rebuild leaderboards/<dataset>.md.
 # Usage: scripts/benchmark.sh [RUN_DIR] [PRESET]   (defaults runs/benchmark, benchmark; PRESET is benchmark or
 # calibrated; every step resumes from what is on disk). The methods run as two parallel streams, one per core

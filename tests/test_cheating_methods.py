@@ -1,4 +1,4 @@
-"""Cheating methods, one per known way around the ground-truth wall (issue 23's ten routes and more), each a
+"""Cheating methods, one per known way around the ground-truth wall (the ten numbered routes and more), each a
 module of its own written into a temporary folder and run through the real ``evaluate`` CLI, as a method
 author would run it (``--method cheats.route:Route``).
 

@@ -178,7 +178,7 @@ def test_load_user_objects_errors(tmp_path):
 
 
 def test_paper_library_is_chunky_multipart_and_distinct():
-    """The `paper` toys (issue 22): 6–20 cm, several convex parts each ≥ ~2 cm thick, one texture per part."""
+    """The `paper` toys: 6–20 cm, several convex parts each ≥ ~2 cm thick, one texture per part."""
     from selfseg.generate.objects import paper_library
 
     toys = paper_library()
