@@ -99,7 +99,7 @@ class TrainConfig(OptimSchedule):
     # Scope of the contrastive negatives (method.contrastive): "image" is the paper's (the segments of the
     # pixel's own frame). "batch" pushes the same object in two frames of a batch apart; measured: it
     # collapsed supervised embeddings at 2000 steps on tiny and gave φ1 lower same-object cosine across
-    # scenes (median .51 vs .72); README "Choices where the paper is silent". "global": label ids name the same
+    # scenes (median .51 vs .72); docs/choices.md. "global": label ids name the same
     # object in every frame (one prototype per object over the batch); only for label sources with global ids.
     # "video" ([selfseg]): ids name one 3-D segment in every frame of its video; its views in a batch share a
     # prototype, and only the segments of the same video are negatives (needs frames_per_video ≥ 2).

@@ -1,6 +1,6 @@
 """CI regression on the real tiny preset: generate → evaluate (oracle, baselines, ours) through the CLIs.
 
-The floors below sit well under the scores measured when they were set (see the README's
+The floors below sit well under the scores measured when they were set (see docs/demo.md's
 leaderboard), so they catch breakage, not noise: a method falling to them is broken.
 """
 import json
