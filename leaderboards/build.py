@@ -295,14 +295,15 @@ def generated_markdown(dataset: str, groups: dict, montage_file: str | None, rep
     return "\n".join(lines) + "\n"
 
 
-def replace_generated(old: str | None, generated: str, title: str) -> str:
-    """Splice ``generated`` between the markers of ``old`` (or a new page with ``title``)."""
+def replace_generated(old: str | None, generated: str, title: str, begin: str = BEGIN, end: str = END) -> str:
+    """Splice ``generated`` (which starts with ``begin`` and ends with ``end``) between those markers of ``old``
+    (or a new page with ``title``); text outside them is kept."""
     if old is None:
         return f"# {title}\n\nRebuild with `python -m selfseg.leaderboards.build --results results/ --out leaderboards/`.\n\n{generated}"
-    i, j = old.find(BEGIN), old.find(END)
+    i, j = old.find(begin), old.find(end)
     if i < 0 or j < i:
         return old.rstrip("\n") + "\n\n" + generated
-    rest = old[j + len(END):]
+    rest = old[j + len(end):]
     return old[:i] + generated + (rest[1:] if rest.startswith("\n") else rest)  # generated ends with "\n"
 
 

@@ -10,6 +10,9 @@
 # leaderboard's Runs table names each run's commit); a method whose config changed runs again and replaces the
 # earlier run (`evaluate --replace`). Without it a method's finished folds are reused only at the same commit and
 # config, as `evaluate` does.
+# SEED=S generates the preset at dataset seed S (default 0). SKIP="name ..." leaves those runs out. CONFIRM=1 is the
+# confirmation protocol's subset (scripts/confirm.sh): no PiCIE, STEGO, V1, one-segment or the GT-merging diagnostic,
+# and no leaderboard rebuild (the confirmation board pools the seeds instead).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/benchmark}
@@ -18,6 +21,15 @@ BIN=.venv/bin
 DATA=$RUN/data
 DISJOINT=$RUN/data-disjoint
 RESULTS=$RUN/results
+SEED=${SEED:-0}
+CONFIRM=${CONFIRM:-0}
+[ "$CONFIRM" = 1 ] && SKIP=${SKIP:-one-segment v1-disjoint ours-gt-merging picie stego}
+SKIP=" ${SKIP:-} "
+# `ours` with the paper's pruning: c_del = α = .1 (criterion 1), registration P/R ≥ .9 (criterion 2) and the
+# paper's criterion 3 (its witnesses at that threshold, no isolation cover), on the preset's config otherwise.
+PAPER_PRUNING=(--set pseudo.match.c_del_node=0.1 --set pseudo.match.c_del_edge=0.1 --set pseudo.prune.alpha=0.1
+               --set pseudo.prune.pr_thresh=0.9 --set pseudo.prune.witness_pr_thresh=null
+               --set pseudo.prune.isolation_cover=null)
 SUP=configs/supervised-$PRESET.yaml
 OURS=configs/ours-$PRESET.yaml
 mkdir -p "$RUN"
@@ -37,7 +49,7 @@ step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
   printf '%s\t%d\n' "$name" $((SECONDS - t0)) >> "$RUN/timings.tsv"
 }
 
-step generate $BIN/generate_scenes --preset "$PRESET" --out "$DATA" --workers 2 --quiet
+step generate $BIN/generate_scenes --preset "$PRESET" --seed "$SEED" --out "$DATA" --workers 2 --quiet
 # The folder this dataset's scores are filed under in RESULTS (its name, or name-hash beside another dataset's).
 KEY=$($BIN/python -c 'import sys; from pathlib import Path; from selfseg.dataset import Dataset
 from selfseg.eval.protocol import results_key; print(results_key(Path(sys.argv[1]), Dataset(sys.argv[2])))' "$RESULTS" "$DATA")
@@ -63,18 +75,27 @@ PY
   echo "scripts/benchmark.sh: $name: kept from an earlier run with this config (KEEP_EARLIER=1)"
 }
 
-evaluate() {  # evaluate NAME ARGS...: one method, 3 folds
-  local m=$1; shift
-  kept "$m" 3 "$m" "$@" && return 0
+skipped() {  # skipped NAME: NAME is in SKIP
+  [[ "$SKIP" == *" $1 "* ]]
+}
+
+evaluate_as() {  # evaluate_as NAME METHOD ARGS...: one run of a method under its own name, 3 folds
+  local name=$1 m=$2; shift 2
+  skipped "$name" && return 0
+  kept "$name" 3 "$m" "$@" && return 0
   local replace=(); [ "${KEEP_EARLIER:-0}" = 1 ] && replace=(--replace)
-  step "$m" $BIN/evaluate --method "$m" --data "$DATA" --out "$RESULTS" --quiet "${replace[@]}" "$@"
+  step "$name" $BIN/evaluate --method "$m" --name "$name" --data "$DATA" --out "$RESULTS" --quiet "${replace[@]}" "$@"
+}
+
+evaluate() {  # evaluate METHOD ARGS...: one method under its own name
+  evaluate_as "$1" "$@"
 }
 
 stream_a() {  # the geometric baselines, the supervised bound, two ablations, then baselines B and D
   for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
   evaluate supervised --config "$SUP"
   for m in ours-v3 ours-v4; do evaluate "$m" --config "$OURS"; done
-  { kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT" &&
+  { { skipped v1-disjoint || kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT"; } &&
     kept uois-sim 3 uois-sim --set train_data="$DISJOINT" && kept sdmaskrcnn-sim 3 sdmaskrcnn-sim --set train_data="$DISJOINT"; } ||
     step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
       --out "$DISJOINT" --workers 2 --quiet
@@ -87,6 +108,7 @@ stream_b() {  # ours (its φ1 is cached for V2), the matching step's ceiling, Ta
   # ours-gt-merging (a diagnostic that reads ground truth): φ2 as in ours on the over-segments merged by ground
   # truth, so ours-gt-merging − ours-v2 is the most a perfect matching and pruning step could add in Table I.
   for m in ours ours-v2 ours-gt-merging; do evaluate "$m" --config "$OURS"; done
+  evaluate_as ours-paper-pruning ours --config "$OURS" "${PAPER_PRUNING[@]}"
   kept ours-matching 1 ours --config "$OURS" || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
   for m in picie stego; do evaluate "$m"; done
 }
@@ -100,4 +122,4 @@ wait $A || failed=1
 wait $B || failed=1
 if [ $failed = 1 ]; then echo "scripts/benchmark.sh: a stream failed; see $RUN/stream-{a,b}.log" >&2; exit 1; fi
 
-$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out leaderboards/
+[ "$CONFIRM" = 1 ] || $BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out leaderboards/

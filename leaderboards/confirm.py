@@ -1,0 +1,257 @@
+"""The confirmation protocol: freeze the configs in a commit, run fresh seeds once, pool them, test the claims.
+
+    python -m selfseg.leaderboards.confirm freeze --preset calibrated        # writes leaderboards/calibrated-freeze.json
+    python -m selfseg.leaderboards.confirm seeds --preset calibrated         # the fresh seeds, one per line
+    python -m selfseg.leaderboards.confirm check --preset calibrated         # may this checkout run them? (exit 2: no)
+    python -m selfseg.leaderboards.confirm board --preset calibrated --runs runs/confirm \\
+        --dev "seed 0=leaderboards/results/calibrated"                        # the section of leaderboards/calibrated.md
+
+**Freeze.** ``freeze`` records the clean HEAD as the freeze commit (its code and every ``configs/`` file's
+hash) in ``leaderboards/<preset>-freeze.json``, to be committed at once. The fresh seeds are derived from the
+freeze commit's hash (:func:`fresh_seeds`), so nobody can have seen their data before the freeze existed, and
+no seed can be picked because it wins; a change to code or configs after the freeze is a new freeze, hence new
+seeds. ``check`` refuses a checkout whose code or configs differ from the freeze commit's (only
+``leaderboards/``, ``docs/`` and ``README.md`` may move on), and ``board`` refuses any result record that
+ran from such a commit or from a dirty tree.
+
+**Board.** Per-seed columns (development seeds marked, never pooled), the fresh seeds pooled over every test
+frame, and paired differences ``ours`` − each baseline and ablation with bootstrap 95 % CIs over the pooled
+test videos (:mod:`selfseg.eval.pooled`); a claim holds only when its CI excludes 0. Table II per seed too.
+The section sits between its own markers in ``leaderboards/<preset>.md``, so ``build`` leaves it alone.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import subprocess
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from selfseg.eval.aggregate import fmt
+from selfseg.eval.pooled import Seed, paired, pooled_videos, score
+from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
+from selfseg.leaderboards.build import load_results, replace_generated
+
+ROOT = Path(__file__).resolve().parents[1]
+FREEZE_JSON = "leaderboards/{preset}-freeze.json"  # the freeze record, committed right after the freeze commit
+SEED_RUN_DIR = "seed-{seed}"  # one fresh seed's run folder (scripts/benchmark.sh RUN) under the runs folder
+SEED_RESULTS_DIR = SEED_RUN_DIR + "/results"
+# Paths that may change after the freeze without making it a new one: what is published, not what computes it.
+UNFROZEN = ("leaderboards", "docs", "README.md")
+DEVELOPMENT_SEEDS = frozenset({0, 1, 7, 11})  # used while choosing settings (1: the disjoint-object training set)
+N_SEEDS = 3
+BEGIN = "<!-- BEGIN CONFIRMATION (selfseg.leaderboards.confirm; edits inside are overwritten) -->"
+END = "<!-- END CONFIRMATION -->"
+# The protocol's rows, in the order shown; ``ours`` − each of the others is a claim.
+BASELINES = ("supervised", "depth-clustering", "lccp-frame", "sdmaskrcnn-sim", "uois-sim", "fg-components")
+ABLATIONS = ("ours-v2", "ours-v3", "ours-v4", "ours-paper-pruning")
+TABLE2_ROWS = ("lccp", "lccp+symseg", "ours-matching", "gt-merging")
+
+
+class FreezeError(ValueError):
+    """The checkout or a result is not the freeze's; the message says what differs."""
+
+
+def _git(*args: str) -> str:
+    return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, check=True).stdout.strip()
+
+
+def fresh_seeds(commit: str, n: int = N_SEEDS) -> list[int]:
+    """``n`` dataset seeds in [100000, 1000000) derived from the freeze commit's hash, never a development seed."""
+    seeds, k = [], 0
+    while len(seeds) < n:
+        s = 100_000 + int(hashlib.sha256(f"{commit}:{k}".encode()).hexdigest()[:12], 16) % 900_000
+        if s not in DEVELOPMENT_SEEDS and s not in seeds:
+            seeds.append(s)
+        k += 1
+    return seeds
+
+
+def frozen_paths_differ(freeze_commit: str, commit: str) -> list[str]:
+    """The files outside :data:`UNFROZEN` that differ between the two commits (empty: the same freeze)."""
+    out = _git("diff", "--name-only", freeze_commit, commit, "--", ".", *(f":!{p}" for p in UNFROZEN))
+    return out.splitlines()
+
+
+def freeze(preset: str, n_seeds: int = N_SEEDS) -> dict:
+    """Record the clean HEAD as the freeze of ``preset``; refuses a dirty tree or an existing record."""
+    path = ROOT / FREEZE_JSON.format(preset=preset)
+    if path.exists():
+        raise FreezeError(f"{path}: a freeze is already recorded; a new freeze is a new record (move this one into "
+                          "docs/experiments/ with its results first)")
+    if _git("status", "--porcelain"):
+        raise FreezeError("the working tree has uncommitted changes: commit them first, the freeze is a commit")
+    commit = _git("rev-parse", "HEAD")
+    configs = {p: hashlib.sha256((ROOT / p).read_bytes()).hexdigest()[:16]
+               for p in _git("ls-files", "configs").splitlines()}
+    rec = {"preset": preset, "commit": commit, "committed_utc": _git("show", "-s", "--format=%cI", commit),
+           "recorded_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+           "seeds": fresh_seeds(commit, n_seeds), "configs": configs}
+    write_json(path, rec)
+    return rec
+
+
+def read_freeze(preset: str) -> dict:
+    path = ROOT / FREEZE_JSON.format(preset=preset)
+    rec = read_json(path)
+    if rec.get("preset") != preset or not isinstance(rec.get("seeds"), list) or "commit" not in rec:
+        raise FileFormatError(f"{path}: not a freeze record of preset {preset!r}")
+    return rec
+
+
+def check_checkout(rec: dict) -> None:
+    """Raise unless this checkout's code and configs are the freeze commit's and nothing is uncommitted."""
+    head = _git("rev-parse", "HEAD")
+    changed = frozen_paths_differ(rec["commit"], head)
+    if changed:
+        raise FreezeError(f"HEAD {head[:10]} differs from the freeze commit {rec['commit'][:10]} in "
+                          f"{', '.join(changed[:5])}{' …' if len(changed) > 5 else ''}: that is a new freeze")
+    dirty = [line[3:] for line in _git("status", "--porcelain").splitlines()]
+    if dirty:
+        raise FreezeError(f"uncommitted changes ({', '.join(dirty[:5])}): results would not name their code")
+
+
+def _check_records(rec: dict, seed: int, groups: dict) -> None:
+    for (_, name), recs in groups.items():
+        for r in recs:
+            commit = r["git"].get("commit") or "?"
+            if r["git"].get("dirty") or commit == "?" or frozen_paths_differ(rec["commit"], commit):
+                raise FreezeError(f"seed {seed}, run {name}, fold {r['fold']}: ran at {commit[:10]}"
+                                  f"{' (dirty)' if r['git'].get('dirty') else ''}, not the freeze {rec['commit'][:10]}")
+
+
+def _only_dataset(results: Path) -> dict:
+    found = load_results(results)
+    if len(found) != 1:
+        raise FileFormatError(f"{results}: expected the results of one dataset, found {sorted(found) or 'none'}")
+    return next(iter(found.values()))
+
+
+def _seeds(rec: dict, runs: Path, dev: list[tuple[str, Path]]) -> tuple[list[Seed], list[Seed], dict]:
+    """(development seeds, fresh seeds with results, {label: 3-D groups}); fresh records are checked."""
+    dev_seeds, fresh, three_d = [], [], {}
+    for label, results in dev:
+        groups = _only_dataset(results)
+        dev_seeds.append(Seed(label, True, {n: r for (t, n), r in groups.items() if t == "2d"}))
+        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+    for s in rec["seeds"]:
+        results = runs / SEED_RESULTS_DIR.format(seed=s)
+        if not results.is_dir():
+            continue
+        groups = _only_dataset(results)
+        _check_records(rec, s, groups)
+        label = f"seed {s}"
+        fresh.append(Seed(label, False, {n: r for (t, n), r in groups.items() if t == "2d"}))
+        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+    return dev_seeds, fresh, three_d
+
+
+def _cell(videos: dict) -> str:
+    if not videos:
+        return "—"
+    s = score(videos)
+    return f"{fmt(s['mean'])} ({fmt(s['ci95'][0])}–{fmt(s['ci95'][1])})"
+
+
+def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d: dict) -> str:
+    """The confirmation section (between :data:`BEGIN` and :data:`END`)."""
+    seeds = dev_seeds + fresh
+    head = ([f"{s.label} (development)" for s in dev_seeds] + [s.label for s in fresh]
+            + [f"pooled, {len(fresh)} fresh seeds"])
+    names = [n for n in ("oracle", "ours", *BASELINES, *ABLATIONS) if any(n in s.runs for s in seeds)]
+    lines = [BEGIN, "", "## Confirmation on fresh seeds", "",
+             f"Freeze commit `{rec['commit'][:10]}` ({rec['committed_utc']}), recorded {rec['recorded_utc']} in "
+             f"`{FREEZE_JSON.format(preset=rec['preset'])}`. Fresh seeds {', '.join(map(str, rec['seeds']))}: derived "
+             f"from the freeze commit's hash, so no one saw their data before the freeze, and each ran once with the "
+             f"frozen code and configs (every result record checked: {len(fresh)} of {len(rec['seeds'])} seeds "
+             "finished). Development seeds are shown beside them and never pooled.", "",
+             "IoU, mean over test frames (95 % CI, bootstrap over test videos):", "",
+             "| method | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
+    for n in names:
+        cells = [_cell(pooled_videos([s], n)) for s in seeds] + [_cell(pooled_videos(fresh, n))]
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", f"Paired differences over the pooled fresh seeds' test videos (IoU; A − B per video, weighted by "
+              f"its frames; 95 % CI by bootstrap over videos). A claim holds only when its CI excludes 0:", "",
+              "| claim | mean | 95 % CI | videos A > B | verdict |"
+              + (f" {'; '.join(s.label for s in dev_seeds)} (development) |" if dev_seeds else ""),
+              "|---|---|---|---|---|" + ("---|" if dev_seeds else "")]
+    ours = pooled_videos(fresh, "ours")
+    for other in (*BASELINES, *ABLATIONS):
+        theirs = pooled_videos(fresh, other)
+        if not ours or not theirs:
+            continue
+        d = paired(ours, theirs)
+        row = (f"| ours − {other} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
+               f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |")
+        if dev_seeds:
+            dv = [paired(pooled_videos([s], "ours"), pooled_videos([s], other)) for s in dev_seeds
+                  if pooled_videos([s], "ours") and pooled_videos([s], other)]
+            row += " " + ("; ".join(f"{x['mean']:+.3f} [{x['ci95'][0]:+.3f}, {x['ci95'][1]:+.3f}]" for x in dv) or "—") + " |"
+        lines.append(row)
+    sup = pooled_videos(fresh, "supervised")
+    if sup:
+        s = score(sup)
+        lines += ["", f"Supervised bound, pooled: {fmt(s['mean'])} (CI {fmt(s['ci95'][0])}–{fmt(s['ci95'][1])}); "
+                  f"target ≥ .90: {'met' if s['mean'] >= 0.90 else 'missed'}."]
+    t2 = [n for n in TABLE2_ROWS if any(n in g for g in three_d.values())]
+    if t2:
+        labels = [s.label for s in seeds]
+        lines += ["", "Table II (3-D, all videos of each seed; IoU over points, mean over videos' frames as in Table II):", "",
+                  "| 3-D segmentation | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+        for n in t2:
+            cells = []
+            for label in labels:
+                recs = three_d.get(label, {}).get(n)
+                cells.append(fmt(recs[0]["metrics"]["IoU"]) if recs else "—")
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines + ["", END]) + "\n"
+
+
+def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path) -> Path:
+    """Write the confirmation section of freeze ``rec`` into ``out`` (text outside its markers is kept)."""
+    dev_seeds, fresh, three_d = _seeds(rec, runs, dev)
+    text = board_markdown(rec, dev_seeds, fresh, three_d)
+    atomic_write_text(out, replace_generated(out.read_text() if out.is_file() else None, text,
+                                             f"Leaderboard: {rec['preset']}", BEGIN, END))
+    return out
+
+
+def _dev_arg(text: str) -> tuple[str, Path]:
+    label, sep, path = text.partition("=")
+    if not sep or not label or not path:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LABEL=RESULTS_DIR, e.g. 'seed 0=leaderboards/results/calibrated'")
+    return label, Path(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m selfseg.leaderboards.confirm", description=__doc__.splitlines()[0])
+    p.add_argument("command", choices=("freeze", "seeds", "check", "board"))
+    p.add_argument("--preset", default="calibrated")
+    p.add_argument("--n-seeds", type=int, default=N_SEEDS, help="freeze: how many fresh seeds")
+    p.add_argument("--runs", type=Path, default=Path("runs/confirm"),
+                   help="board: the folder holding each fresh seed's run (seed-<S>/results)")
+    p.add_argument("--dev", type=_dev_arg, action="append", default=[], metavar="LABEL=RESULTS",
+                   help="board: a development seed's results folder, shown beside the fresh seeds (repeatable)")
+    p.add_argument("--out", type=Path, help="board: the leaderboard page (default leaderboards/<preset>.md)")
+    args = p.parse_args(argv)
+    try:
+        if args.command == "freeze":
+            rec = freeze(args.preset, args.n_seeds)
+            print(f"freeze of {args.preset}: commit {rec['commit'][:10]}, seeds {' '.join(map(str, rec['seeds']))}; "
+                  f"commit {FREEZE_JSON.format(preset=args.preset)} now")
+        elif args.command == "seeds":
+            print("\n".join(map(str, read_freeze(args.preset)["seeds"])))
+        elif args.command == "check":
+            check_checkout(read_freeze(args.preset))
+        else:
+            print(board(read_freeze(args.preset), args.runs, args.dev,
+                        args.out or ROOT / "leaderboards" / f"{args.preset}.md"))
+    except (FreezeError, FileFormatError, FileNotFoundError) as e:
+        print(f"confirm: error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

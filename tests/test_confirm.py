@@ -1,0 +1,99 @@
+"""The confirmation protocol: seeds follow the freeze commit, paired CIs, pooled seeds, frozen records only."""
+import subprocess
+
+import pytest
+
+from selfseg.eval.cli import main as evaluate
+from selfseg.eval.pooled import paired, pooled_videos, score
+from selfseg.fileio import read_json, write_json
+from selfseg.leaderboards.build import BEGIN as BUILD_BEGIN
+from selfseg.leaderboards.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
+                                          check_checkout, fresh_seeds, frozen_paths_differ)
+
+
+def _git(*args):
+    return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, check=True).stdout.strip()
+
+
+def _videos(values, frames=4):
+    return {f"s/{i:06d}": {"IoU": v, "n_frames": frames} for i, v in enumerate(values)}
+
+
+def test_fresh_seeds_follow_the_freeze_commit_and_avoid_development_seeds():
+    a = fresh_seeds("0" * 40)
+    assert a == fresh_seeds("0" * 40) and len(set(a)) == 3
+    assert all(100_000 <= s < 1_000_000 and s not in DEVELOPMENT_SEEDS for s in a)
+    assert fresh_seeds("1" + "0" * 39) != a  # a new freeze draws new seeds
+    assert len(fresh_seeds("0" * 40, 5)) == 5 and fresh_seeds("0" * 40, 5)[:3] == a
+
+
+def test_paired_difference_verdicts_on_known_videos():
+    base = [0.5, 0.6, 0.7, 0.8, 0.55, 0.65]
+    up = paired(_videos([b + 0.1 for b in base]), _videos(base))
+    assert up["mean"] == pytest.approx(0.1) and up["ci95"][0] == pytest.approx(0.1) and up["verdict"] == "holds"
+    assert up["wins"] == 6 and up["n_videos"] == 6 and up["n_unpaired"] == 0
+    assert paired(_videos(base), _videos([b + 0.1 for b in base]))["verdict"] == "reversed"
+    mixed = paired(_videos([b + d for b, d in zip(base, (0.2, -0.2, 0.1, -0.1, 0.05, -0.05))]), _videos(base))
+    assert mixed["verdict"] == "inside the noise" and mixed["ci95"][0] < 0 < mixed["ci95"][1]
+    assert mixed["wins"] == 3 and mixed["losses"] == 3
+    with pytest.raises(ValueError, match="same frames"):
+        paired(_videos(base, frames=4), _videos(base, frames=5))
+    weighted = score({"a": {"IoU": 1.0, "n_frames": 3}, "b": {"IoU": 0.0, "n_frames": 1}})
+    assert weighted["mean"] == pytest.approx(0.75) and weighted["n_frames"] == 4
+
+
+@pytest.fixture(scope="module")
+def runs(analytic_dataset, tmp_path_factory):
+    """Two 'fresh seeds' (the analytic dataset twice): the oracle as `ours`, one segment as `depth-clustering`."""
+    root = tmp_path_factory.mktemp("confirm")
+    head = _git("rev-parse", "HEAD")
+    for seed in (101, 202):
+        out = root / SEED_RESULTS_DIR.format(seed=seed)
+        for method, name in (("oracle", "ours"), ("one-segment", "depth-clustering")):
+            assert evaluate(["--method", method, "--name", name, "--data", str(analytic_dataset), "--frame-stride",
+                             "3", "--out", str(out), "--quiet"]) == 0
+        for path in out.glob("scores/*/*/fold*.json"):  # as if run from a clean checkout of the freeze commit
+            rec = read_json(path)
+            write_json(path, {**rec, "git": {"commit": head, "dirty": False}})
+    rec = {"preset": "analytic", "commit": head, "committed_utc": "2026-01-01T00:00:00+00:00",
+           "recorded_utc": "2026-01-01T00:00:01+00:00", "seeds": [101, 202, 303]}
+    return root, rec
+
+
+def test_board_pools_the_fresh_seeds_and_keeps_the_build_section(runs, tmp_path):
+    root, rec = runs
+    page = tmp_path / "analytic.md"
+    page.write_text(f"# mine\n\n{BUILD_BEGIN}\nbuilt tables\n<!-- END GENERATED -->\n\nnotes\n")
+    board(rec, root, [("seed 0", root / SEED_RESULTS_DIR.format(seed=101))], page)
+    text = page.read_text()
+    assert "built tables" in text and "notes" in text and text.count(BEGIN) == 1
+    assert "2 of 3 seeds finished" in text and "seed 0 (development)" in text and "pooled, 2 fresh seeds" in text
+    claim = next(line for line in text.splitlines() if line.startswith("| ours − depth-clustering"))
+    assert "**holds**" in claim and "6 of 6" in claim  # 3 test videos per seed, oracle beats one segment on each
+    assert "| ours | 1.000 (1.000–1.000) |" in text
+    board(rec, root, [("seed 0", root / SEED_RESULTS_DIR.format(seed=101))], page)
+    assert page.read_text() == text  # idempotent
+
+
+def test_board_refuses_a_record_from_code_that_moved_since_the_freeze(runs, tmp_path):
+    root, rec = runs
+    first = _git("rev-list", "--max-parents=0", "HEAD").splitlines()[0]
+    path = next((root / SEED_RESULTS_DIR.format(seed=202)).glob("scores/*/ours/fold1.json"))
+    good = read_json(path)
+    try:
+        write_json(path, {**good, "git": {"commit": first, "dirty": False}})
+        with pytest.raises(FreezeError, match="seed 202, run ours, fold 1: ran at"):
+            board(rec, root, [], tmp_path / "x.md")
+        write_json(path, {**good, "git": {"commit": rec["commit"], "dirty": True}})
+        with pytest.raises(FreezeError, match=r"\(dirty\)"):
+            board(rec, root, [], tmp_path / "x.md")
+    finally:
+        write_json(path, good)
+
+
+def test_a_checkout_whose_code_moved_since_the_freeze_may_not_run_it():
+    first = _git("rev-list", "--max-parents=0", "HEAD").splitlines()[0]
+    assert frozen_paths_differ(_git("rev-parse", "HEAD"), "HEAD") == []
+    with pytest.raises(FreezeError, match="that is a new freeze"):
+        check_checkout({"commit": first})
+    assert pooled_videos([], "ours") == {}
