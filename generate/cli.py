@@ -64,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--library", choices=list(LIBRARIES), help="object library built in code: builtin (25 objects) or "
                    "paper (chunky multi-part toys); default: the preset's")
     p.add_argument("--renderer", choices=["cycles", "workbench"], help="image renderer (default: cycles)")
+    p.add_argument("--depth-noise", choices=["off", "kinect"], help="sensor noise on the depth frames: off (exact depth) "
+                   "or kinect (structured light, generate/depth_noise.py); masks and poses stay exact; default: the "
+                   "preset's")
     p.add_argument("--object-pool", type=lambda v: [n.strip() for n in v.split(",") if n.strip()],
                    help="comma-separated object names to draw from (e.g. a set disjoint from another dataset's, "
                         "for the v1-disjoint baseline); default: the preset's pool")
@@ -117,11 +120,27 @@ def verify_dataset(root: Path) -> int:
 def config_from_args(args: argparse.Namespace) -> GenerateConfig:
     """The resolved config: the preset, then the command-line overrides."""
     width, height = args.resolution if args.resolution else (None, None)
+    render = {"renderer": args.renderer} if args.renderer else {}
+    if args.depth_noise is not None:
+        render["depth_noise"] = {} if args.depth_noise == "kinect" else None  # {}: DepthNoiseConfig's defaults
     return preset_config(args.preset, scenes=args.scenes, frames=args.frames, frame_step=args.frame_step,
                          width=width, height=height, objects_per_scene=args.objects_per_scene,
                          objects_dir=str(args.objects.resolve()) if args.objects else None, seed=args.seed,
-                         object_pool=args.object_pool, library=args.library,
-                         render={"renderer": args.renderer} if args.renderer else None)
+                         object_pool=args.object_pool, library=args.library, render=render or None)
+
+
+def _without_noise_off(config: dict) -> dict:
+    """A config record without ``render.depth_noise`` when that is None (off)."""
+    render = config.get("render")
+    if isinstance(render, dict) and "depth_noise" in render and render["depth_noise"] is None:
+        return {**config, "render": {k: v for k, v in render.items() if k != "depth_noise"}}
+    return config
+
+
+def recorded_config(cfg: GenerateConfig) -> dict:
+    """The config as dataset_info.json records it: without ``render.depth_noise`` when it is off, so that data
+    made without noise keeps the bytes (and manifest hash) it had before the option existed."""
+    return _without_noise_off(to_dict(cfg))
 
 
 def _stored_config(out: Path) -> dict | None:
@@ -237,7 +256,8 @@ def prepare_output(out: Path, cfg: GenerateConfig, overwrite: bool) -> None:
         return
     if stored is None:
         raise GenerateError(f"{out}: folder is not empty and is not a selfseg dataset; choose another --out")
-    ours = {**to_dict(cfg), "generator_version": GENERATOR_VERSION}
+    stored = _without_noise_off(stored)  # a record that spells the noise out as off is the same config
+    ours = {**recorded_config(cfg), "generator_version": GENERATOR_VERSION}
     if hash_json(stored) != hash_json(ours):
         diff = sorted(k for k in set(ours) | set(stored if isinstance(stored, dict) else {})
                       if not isinstance(stored, dict) or stored.get(k) != ours.get(k))
@@ -334,7 +354,7 @@ def run(args: argparse.Namespace, cfg: GenerateConfig, library: list, t_start: f
     totals = {"validate": time.perf_counter() - t_start, **dict.fromkeys(STAGES, 0.0), "models": 0.0}
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    cfg_dict = to_dict(cfg)
+    cfg_dict = recorded_config(cfg)
     write_json(out / PROGRESS_FILE, {"config": cfg_dict, "generator_version": GENERATOR_VERSION})
     cache_dir = args.cache_dir / "physics"
     todo = [i for i in range(cfg.scenes) if not (out / VIDEO_DIR.format(video_id=video_id_str(i))).is_dir()]

@@ -13,6 +13,11 @@
   8 objects per scene from the 13 chunky multi-part toys of the ``paper`` library, dropped apart
   (``spread``, .25 m) so that objects rarely touch (0.54 touching pairs per scene on dev seeds 7 and 11);
   camera 0.90–1.16 m from the orbit centre, objects 35–44 px (seed 7).
+* ``cluttered``: ``calibrated``'s library, orbit and size at the paper's density: 12 of the 13 ``paper`` toys per
+  scene (every object in about 11 of the 12 scenes), dropped in one pile (``pile``, the default .15 m drop disc)
+  so that objects touch (9.8 touching pairs per scene, all 12 objects kept; dev seed 7, scenes 0–4).
+* ``calibrated-noisy``, ``cluttered-noisy``: the same with structured-light depth noise
+  (``render.depth_noise``: the Kinect v1 defaults of :class:`~selfseg.generate.depth_noise.DepthNoiseConfig`).
 * ``paper-synthetic``: as in the paper: 36 videos × 800 frames, 12 objects per scene drawn from
   a fixed 17-object subset, 640×480. ``frame_step`` n renders only every n-th frame.
 """
@@ -110,9 +115,15 @@ PRESETS: dict[str, dict] = {
     "calibrated": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8,
                    "library": "paper", "orbit": CLOSE_ORBIT,
                    "physics": {"layout": "spread", "drop_radius_m": 0.25, "spread_gap_m": 0.01}},
+    # the paper's density: 12 toys per scene in one pile
+    "cluttered": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 12,
+                  "library": "paper", "orbit": CLOSE_ORBIT},
     "paper-synthetic": {"scenes": 36, "frames": 800, "width": 640, "height": 480, "objects_per_scene": 12,
                         "object_pool": None},  # filled with PAPER_SUBSET by preset_config
 }
+# the same with the depth noise on ({}: DepthNoiseConfig's defaults)
+PRESETS.update({f"{name}-noisy": {**PRESETS[name], "render": {"depth_noise": {}}}
+                for name in ("calibrated", "cluttered")})
 
 
 def preset_config(name: str, **overrides) -> GenerateConfig:

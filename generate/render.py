@@ -31,6 +31,7 @@ from typing import Literal
 
 import numpy as np
 
+from selfseg.generate.depth_noise import DepthNoiseConfig
 from selfseg.generate.textures import table_texture
 
 BLENDER_BACKGROUND_DEPTH = 1e9  # Blender's Z pass writes 1e10 where no surface is hit
@@ -49,6 +50,7 @@ class RenderConfig:
     max_bounces: int = 3  # Cycles total light-path bounces (diffuse 2, glossy 2, no caustics)
     device: Literal["auto", "cpu"] = "auto"  # auto: Cycles on a GPU when one exists
     threads: int = 0  # render threads, 0 = all cores
+    depth_noise: DepthNoiseConfig | None = None  # sensor noise on the written depth (depth_noise.py); None: exact
 
     def __post_init__(self) -> None:
         if self.samples < 1:

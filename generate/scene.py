@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.fileio import atomic_dir
+from selfseg.generate.depth_noise import add_depth_noise, frame_rng
 from selfseg.generate.determinism import snap, snap_pose
 from selfseg.generate.objects import ObjectModel
 from selfseg.generate.physics import drop_objects
@@ -148,6 +149,8 @@ def generate_scene(cfg: GenerateConfig, index: int, library: list[ObjectModel], 
                 rgb = bscene.render_rgb()
                 t1 = time.perf_counter()
                 depth, inst = bscene.render_ground_truth()
+                if cfg.render.depth_noise is not None:  # the measured depth; masks and poses stay exact
+                    depth = add_depth_noise(depth, K, cfg.render.depth_noise, frame_rng(seed, fid))
                 t2 = time.perf_counter()
                 T_cw = invert_T(T_wc)
                 writer.write_frame(fid, rgb, depth, inst, K, T_wc,
