@@ -27,7 +27,7 @@ demo: $(STAMP)
 # runs/calibrated/results): `make demo` itself writes only under runs/demo.
 RESULTS ?= $(DEMO)/results
 leaderboards: $(STAMP)
-	$(PY) -m selfseg.leaderboards.build --results $(RESULTS) --out leaderboards/
+	$(PY) -m selfseg.eval.leaderboard --results $(RESULTS) --out leaderboards/
 
 # The suite runs as on a fresh machine: an empty HOME (no caches, no matplotlib font cache), MPLCONFIGDIR unset.
 test: $(STAMP)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from selfseg.dataset import DatasetError, Video, read_inst
-from selfseg.eval.protocol import PREDICTION_PNG
+from selfseg.eval.layout import PREDICTION_PNG
 from selfseg.method_api import Method
 
 

@@ -9,20 +9,19 @@ given method; without ``--data`` it builds the ray-cast analytic test dataset in
 """
 from __future__ import annotations
 
-import argparse
-import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from common import bench_parser, write_result
 
+from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.dataset import Dataset
+from selfseg.eval.folds import EvalOptions
 from selfseg.eval.metrics import frame_metrics
-from selfseg.eval.protocol import EvalOptions, git_info, run_fold
-from selfseg.fileio import write_json
+from selfseg.eval.protocol import run_fold
 from selfseg.registry import get_method_class
 
 
@@ -50,19 +49,15 @@ def time_frame(h: int, w: int, repeats: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser(__doc__, "eval.json")
     p.add_argument("--data", type=Path, help="dataset folder (default: build the analytic test dataset)")
     p.add_argument("--method", default="fg-components")
     p.add_argument("--repeats", type=int, default=50)
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "eval.json")
     args = p.parse_args(argv)
 
     report = {"frame_ms": {f"{w}x{h}": round(time_frame(h, w, args.repeats), 3) for h, w in ((480, 640), (240, 320))}}
     with tempfile.TemporaryDirectory() as tmp:
         if args.data is None:
-            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-            from analytic import make_dataset, two_box_scenes
-
             data, stride = make_dataset(Path(tmp) / "analytic", two_box_scenes()), 1
         else:
             data, stride = args.data, 10
@@ -80,11 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         "segment_ms_per_frame": round(float(np.mean([r["timings"]["ms_per_frame"] for r in records])), 3),
         "resolution": [dataset.width, dataset.height],
     }
-    report["machine"] = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
-                         "cores": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2)}
-    report["git"] = git_info()
-    write_json(args.out, report)
     print(report)
+    write_result(args.out, report)
     return 0
 
 

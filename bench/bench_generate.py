@@ -13,16 +13,14 @@ Usage: .venv/bin/python bench/bench_generate.py [--frames 3] [--small] [--out be
 """
 from __future__ import annotations
 
-import argparse
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from common import bench_parser, write_result
 
-from selfseg.fileio import write_json
 from selfseg.generate.cli import main as generate_main
 from selfseg.generate.physics import drop_objects
 from selfseg.generate.presets import preset_config
@@ -107,10 +105,9 @@ def estimate(preset: str, per_frame: float, per_scene: float, **overrides) -> di
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = bench_parser(__doc__, "generate.json")
     ap.add_argument("--frames", type=int, default=3, help="frames timed per renderer and resolution (after a warm-up)")
     ap.add_argument("--small", action="store_true", help="also run the small preset (about 10+ minutes)")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "generate.json")
     args = ap.parse_args()
 
     load_start = os.getloadavg()
@@ -153,13 +150,10 @@ def main() -> None:
     if not args.small:
         estimates["small"] = {**estimate("small", frame_s("cycles", 320), per_scene),
                               "basis": "not run (use --small): extrapolated from cycles 320x240 s/frame"}
-    result = {"machine": {"cpus": ncpu, "platform": platform.platform(), "loadavg_start": load_start,
-                          "loadavg_end": os.getloadavg()},
-              "physics_8_objects_s": round(physics_s, 2), "per_frame": per_frame, "cycles_settings_320x240": sweep,
+    result = {"physics_8_objects_s": round(physics_s, 2), "per_frame": per_frame, "cycles_settings_320x240": sweep,
               "presets": presets,
               "estimates": estimates, "render_config": vars(RenderConfig())}
-    write_json(args.out, result)
-    print(f"wrote {args.out}")
+    write_result(args.out, result, load_start)
 
 
 if __name__ == "__main__":

@@ -2,45 +2,24 @@
 
     .venv/bin/python bench/bench_overseg.py [--out bench/results/overseg.json] [--repeats 2]
 
-The scene is analytic: 9 objects (boxes, cylinders, bowls, a mug) on a table, some touching,
-ray-cast from 32 views all around with 1 mm depth noise and thinned to one point per grid cell
-(5, 2.5 and 1.5 mm: about 16k to 180k points), table removed. Also reported: how many of the
+The scene is analytic (:func:`selfseg.analytic.scene_meshes`): 9 objects (boxes, cylinders, bowls, a mug) on a
+table, some touching, ray-cast from 32 views all around with 1 mm depth noise and thinned to one point per grid
+cell (5, 2.5 and 1.5 mm: about 16k to 180k points), table removed. Also reported: how many of the
 objects a segment recovers at point IoU ≥ 0.8 (the mug with its handle is one object), also
 with LCCP's sanity criterion off (PCL's example default). Timings exclude numba's one-off compilation (reported separately); the best of ``--repeats`` runs is kept.
 """
 from __future__ import annotations
 
-import argparse
-import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from common import bench_parser, write_result
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from analytic import bowl, box, cylinder  # noqa: E402
-from cloud_fixtures import fused_cloud  # noqa: E402
-from selfseg.fileio import write_json  # noqa: E402
-from selfseg.method.lccp import LCCPConfig, lccp_segment  # noqa: E402
-from selfseg.method.overseg import OversegConfig, fuse_symmetries, oversegment, prune_small  # noqa: E402
-from selfseg.method.segment_graph import build_segment_graph  # noqa: E402
-from selfseg.method.symseg import SymSegConfig, detect_rotational_symmetries  # noqa: E402
-
-
-def scene_meshes():
-    import trimesh
-
-    handle = trimesh.creation.torus(0.025, 0.006)
-    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    handle.apply_translation((0.2 + 0.04, -0.15, 0.05))
-    return [box((0.08, 0.08, 0.08), (-0.2, -0.15, 0.04)), box((0.06, 0.05, 0.04), (-0.13, -0.15, 0.02)),
-            cylinder(0.035, 0.12, (0.0, -0.15, 0.06)), bowl(0.08, 0.05, 0.006, (0.0, 0.05, 0.0)),
-            cylinder(0.02, 0.1, (0.0, 0.05, 0.056)), box((0.12, 0.04, 0.03), (-0.22, 0.08, 0.015)),
-            box((0.05, 0.06, 0.1), (-0.135, 0.08, 0.05)),
-            trimesh.util.concatenate([cylinder(0.035, 0.09, (0.2, -0.15, 0.045)), handle]),
-            bowl(0.06, 0.04, 0.005, (0.2, 0.12, 0.0))]
+from selfseg.analytic import fused_cloud, scene_meshes
+from selfseg.method.lccp import LCCPConfig, lccp_segment
+from selfseg.method.overseg import OversegConfig, fuse_symmetries, oversegment, prune_small
+from selfseg.method.segment_graph import build_segment_graph
+from selfseg.method.symseg import SymSegConfig, detect_rotational_symmetries
 
 
 def objects_recovered(labels: np.ndarray, gt: np.ndarray, min_iou: float = 0.8) -> int:
@@ -82,8 +61,7 @@ def bench_one(P, N, gt, repeats: int) -> dict:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "overseg.json"))
+    ap = bench_parser(__doc__, "overseg.json")
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args(argv)
     meshes = scene_meshes()
@@ -102,10 +80,8 @@ def main(argv=None) -> None:
               f" {r['final_segments']} final; objects at IoU ≥ 0.8: {r['objects_iou80_lccp']} LCCP,"
               f" {r['objects_iou80_lccp_symseg']} LCCP+SymSeg of {len(meshes)};"
               f" {r['objects_iou80_lccp_symseg_no_sanity']} without the sanity criterion)")
-    write_json(args.out, {"objects": len(meshes), "scenes": results, "first_call_with_compile_s": round(compile_s, 2),
-                          "machine": {"python": platform.python_version(), "processor": platform.processor(),
-                                      "cpus": __import__("os").cpu_count()}})
-    print(f"wrote {args.out}")
+    write_result(args.out, {"objects": len(meshes), "scenes": results,
+                            "first_call_with_compile_s": round(compile_s, 2)})
 
 
 if __name__ == "__main__":

@@ -14,25 +14,19 @@ Wall-clock times depend on the machine's load (recorded); the process CPU time i
 """
 from __future__ import annotations
 
-import argparse
-import os
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from common import bench_parser, write_result
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from analytic import bowl, box, cylinder, make_dataset  # noqa: E402
-from selfseg.dataset import Dataset  # noqa: E402
-from selfseg.fileio import write_json  # noqa: E402
-from selfseg.method.background import BackgroundConfig  # noqa: E402
-from selfseg.method.recon_stage import load_recon, run_recon_stage  # noqa: E402
-from selfseg.method.reconstruct import ReconConfig, trajectory_error  # noqa: E402
-from selfseg.stages import StageCache  # noqa: E402
+from selfseg.analytic import bowl, box, cylinder, make_dataset
+from selfseg.dataset import Dataset
+from selfseg.method.background import BackgroundConfig
+from selfseg.method.recon_stage import load_recon, run_recon_stage
+from selfseg.method.reconstruct import ReconConfig, trajectory_error
+from selfseg.stages import StageCache
 
 OBJECTS = [(box((0.08, 0.08, 0.08), (-0.08, 0.0, 0.04)), 1), (cylinder(0.04, 0.1, (0.07, 0.04, 0.05)), 2),
            (bowl(center=(0.02, -0.1, 0)), 3)]
@@ -84,11 +78,10 @@ def bench_video(ds: Dataset, vid: str, cache_root: Path, analytic: bool) -> dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__, "recon.json")
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--data", type=Path, help="a generated dataset instead of the analytic video")
     ap.add_argument("--videos", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "recon.json")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -102,13 +95,10 @@ def main(argv: list[str] | None = None) -> int:
             ds = Dataset(args.data)
             vids = ds.video_ids[:args.videos]
         results = [bench_video(ds, vid, tmp / "cache", args.data is None) for vid in (vids or ds.video_ids)]
-    write_json(args.out, {"benchmark": "recon", "data": str(args.data) if args.data else
-                          f"analytic orbit, {args.frames} frames at 1.5°/frame, 320x240",
-                          "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                                      "load_average_1min": os.getloadavg()[0]},
-                          "config": {"recon": "ReconConfig()", "background": "BackgroundConfig()"},
-                          "videos": results})
-    print(f"wrote {args.out}")
+    write_result(args.out, {"benchmark": "recon", "data": str(args.data) if args.data else
+                            f"analytic orbit, {args.frames} frames at 1.5°/frame, 320x240",
+                            "config": {"recon": "ReconConfig()", "background": "BackgroundConfig()"},
+                            "videos": results})
     return 0
 
 

@@ -12,9 +12,7 @@
 """
 from __future__ import annotations
 
-import argparse
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -22,9 +20,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from selfseg.eval.protocol import N_FOLDS, git_info
+from common import bench_parser, write_result
+
+from selfseg.eval.layout import N_FOLDS
 from selfseg.eval.sandbox import BWRAP_ENV, bwrap_argv, base_mounts, bwrap_binary, sandbox_unavailable
-from selfseg.fileio import write_json
 
 NO_BWRAP = "/nonexistent/bwrap"
 
@@ -52,12 +51,11 @@ def _evaluate_s(method: str, data: Path, sandboxed: bool, n: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser(__doc__, "sandbox.json")
     p.add_argument("--data", type=Path, required=True, help="a dataset folder (the tiny preset)")
     p.add_argument("--method", default="depth-clustering")
     p.add_argument("--runs", type=int, default=3, help="evaluate runs per setting (median)")
     p.add_argument("--starts", type=int, default=20, help="sandbox starts (median)")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "sandbox.json")
     args = p.parse_args(argv)
     reason = sandbox_unavailable()
     if reason is not None:
@@ -78,14 +76,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{f'evaluate --method {args.method} ({N_FOLDS} folds)':44s} plain {run['unsandboxed_s']:7.2f} s    "
           f"sandboxed {run['sandbox_s']:7.2f} s    +{run['overhead_s']:.2f} s ({run['overhead_per_process_s']:.2f} s per "
           f"process, {1 + N_FOLDS} processes; median of {args.runs})")
-    write_json(args.out, {"start_up": {k: round(v, 2) for k, v in start.items()},
-                          "evaluate": {k: round(v, 3) for k, v in run.items()},
-                          "method": args.method, "data": str(args.data), "runs": args.runs, "starts": args.starts,
-                          "bwrap": subprocess.run([bwrap_binary(), "--version"], capture_output=True,
-                                                  text=True).stdout.strip(),
-                          "load_average": os.getloadavg(), "cpus": os.cpu_count(), "machine": platform.machine(),
-                          "git": git_info()})
-    print(f"wrote {args.out}")
+    write_result(args.out, {"start_up": {k: round(v, 2) for k, v in start.items()},
+                            "evaluate": {k: round(v, 3) for k, v in run.items()},
+                            "method": args.method, "data": str(args.data), "runs": args.runs, "starts": args.starts,
+                            "bwrap": subprocess.run([bwrap_binary(), "--version"], capture_output=True,
+                                                    text=True).stdout.strip()})
     return 0
 
 

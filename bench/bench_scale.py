@@ -3,7 +3,7 @@
 Measures on this machine, for each executor (local, ray) and worker count (1, 2): starting and
 stopping the executor; the round trip of one empty task (submit → result, one at a time: a task's
 fixed overhead); 200 empty tasks submitted at once (per-task cost when tasks queue); all-pairs
-matching of 12 synthetic scenes (bench_matching's generator) and, with ``--graphs OUT``, of the real
+matching of 12 synthetic scenes (bench_matching's generator, ``common.py``) and, with ``--graphs OUT``, of the real
 segment graphs and φ1 features an ``evaluate3d --out OUT`` run left (e.g. the benchmark preset's 12
 videos); and the tiny preset (Workbench) generated through the ``generate_scenes`` CLI. Matches and
 datasets must be identical across every configuration. Then it estimates the paper-scale set (36
@@ -13,15 +13,13 @@ videos × 800 frames at 640×480, Cycles) on N nodes from the measured per-frame
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_scale.py [--graphs runs/benchmark/results]
-    # writes bench/results/scale.json
+    # writes bench/results/scale.json (--out for another file)
 """
 from __future__ import annotations
 
-import argparse
 import filecmp
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -31,15 +29,14 @@ from pathlib import Path
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # a private instance on the loopback interface
 
 import numpy as np  # noqa: E402
+from common import RESULTS, bench_parser, make_library, make_scene, write_result  # noqa: E402
 
-from bench_matching import make_library, make_scene  # noqa: E402
 from selfseg.executor import make_executor  # noqa: E402
-from selfseg.fileio import read_json, write_json  # noqa: E402
+from selfseg.fileio import read_json  # noqa: E402
 from selfseg.method.matching import MatchConfig, SceneGraph, match_all  # noqa: E402
 from selfseg.method.pipeline import FEATURES_NPY, PSEUDO_CACHE_DIR, SEGMENTS_NPZ  # noqa: E402
 from selfseg.method.segment_graph import SegmentGraph  # noqa: E402
 
-RESULTS = Path(__file__).parent / "results"
 WORKERS = (1, 2)
 PAPER = {"scenes": 36, "frames": 800, "resolution": [640, 480]}
 
@@ -147,7 +144,7 @@ def paper_estimate(round_trip_ms: float) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser(__doc__, "scale.json")
     p.add_argument("--graphs", type=Path, help="an evaluate3d --out folder: also match its real segment graphs")
     args = p.parse_args()
     real = load_graphs(args.graphs) if args.graphs else None
@@ -165,13 +162,12 @@ def main() -> None:
             costs[f"{kind}-{w}"]["tiny_preset_workbench_wall_s"] = round(tiny_preset(kind, w, Path(tmp) / f"{kind}-{w}"), 2)
         identical = all(_same_tree(Path(tmp) / "local-1", Path(tmp) / f"{kind}-{w}") for kind, w in configs)
     assert identical, "the tiny preset differs between executors"
-    result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "loadavg": os.getloadavg()},
-              "workers": list(WORKERS), "costs": costs, "tiny_identical": identical,
+    result = {"workers": list(WORKERS), "costs": costs, "tiny_identical": identical,
               "real_graphs": None if real is None else {"from": str(args.graphs), "scenes": len(real),
                                                         "segments": int(sum(len(g.features) for g in real)),
                                                         "nonempty_matches": n_real},
               "paper_estimate": paper_estimate(costs["ray-2"]["task_round_trip_ms"])}
-    write_json(RESULTS / "scale.json", result)
+    write_result(args.out, result)
     keys = ["start_s", "stop_s", "task_round_trip_ms", "task_queued_ms", "matching_12_synthetic_wall_s",
             *(["matching_real_wall_s"] if real is not None else []), "tiny_preset_workbench_wall_s"]
     print(f"{'':30}" + "".join(f"{k:>10}" for k in costs))

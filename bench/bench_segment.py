@@ -14,9 +14,7 @@ the cores may be shared. Paper figure: about 6 fps.
 """
 from __future__ import annotations
 
-import argparse
 import os
-import platform
 import shutil
 import time
 from pathlib import Path
@@ -24,9 +22,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from common import bench_parser, write_result
 
 from selfseg.dataset import Dataset
-from selfseg.fileio import write_json
 from selfseg.importers import scale_K
 from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.cli import segment_main
@@ -61,12 +59,11 @@ def timed_segment(args: list[str], n: int) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser(__doc__, "segment.json")
     p.add_argument("--data", type=Path, default=Path("data/tiny"), help="a generated tiny dataset (generate_scenes --preset tiny --out data/tiny)")
     p.add_argument("--work", type=Path, default=Path("/tmp/bench_segment"))
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--threads", type=int, default=1)  # two threads cost ~5x the CPU on the shared cores
-    p.add_argument("--out", type=Path, default=Path("bench/results/segment.json"))
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     model = a.work / "model"
@@ -89,10 +86,8 @@ def main() -> None:
     print(f"{'foreground':20s} {'fps':>6s} {'ms/frame':>9s} {'CPU ms/frame':>13s}")
     for k, r in rows.items():
         print(f"{k:20s} {r['fps']:6.2f} {r['ms_per_frame']:9.1f} {r['cpu_ms_per_frame']:13.1f}")
-    write_json(a.out, {"resolution": [W, H], "frames": n, "threads": a.threads, "method": "ours-v2",
-                       "model": str(model), "results": rows, "load_average_1min": round(os.getloadavg()[0], 2),
-                       "cpu": platform.processor() or platform.machine(), "torch": torch.__version__})
-    print(f"wrote {a.out}")
+    write_result(a.out, {"resolution": [W, H], "frames": n, "threads": a.threads, "method": "ours-v2",
+                         "model": str(model), "results": rows})
 
 
 if __name__ == "__main__":

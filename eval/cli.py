@@ -8,7 +8,7 @@ under the paper's protocol; ``evaluate3d``: Table II (:mod:`selfseg.eval.table2`
     evaluate3d --data DIR [--config FILE] [--set key=value ...] [--out results/]
                [--rows lccp,lccp+symseg,ours-matching,gt-merging] [--stats] [--quiet] [--executor local|ray]
 
-Writes results under ``--out`` (layout in :mod:`selfseg.eval.protocol`) and prints a table. The method's code
+Writes results under ``--out`` (layout in :mod:`selfseg.eval.layout`) and prints a table. The method's code
 runs only in its own sandboxed process (:mod:`selfseg.eval.sandbox`), never in this one.
 Errors in the inputs (unknown method, missing dataset, bad config or predictions) print one
 message naming the file or option and exit with status 2.
@@ -25,9 +25,12 @@ from pathlib import Path
 from selfseg.config import ConfigError
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt, summarize_folds
-from selfseg.eval.protocol import (RUN_SCORES_DIR, EvalOptions, MethodOutputError, N_FOLDS, finished_fold, results_key,
-                                   retire_run, run_conflict, run_fold)
+from selfseg.eval.folds import EvalOptions
+from selfseg.eval.layout import N_FOLDS, RUN_SCORES_DIR, results_key
+from selfseg.eval.protocol import run_fold
+from selfseg.eval.resume import finished_fold, retire_run, run_conflict
 from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
+from selfseg.eval.scoring import MethodOutputError
 from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, executor_config, shared_executor
 from selfseg.fileio import BusyError, FileFormatError
 from selfseg.guard import GroundTruthAccessError

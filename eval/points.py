@@ -105,7 +105,7 @@ class PointsEvaluator:
     """detectron2-style accumulator of per-video point-cloud scores (one cloud per video).
 
     ``evaluate()`` gives {metrics, per_video, ci95} over :data:`POINT_KEYS`; with
-    :func:`selfseg.eval.protocol.provenance` (task ``"3d"``), ``fold`` and ``timings`` it makes a
+    :func:`selfseg.eval.provenance.provenance` (task ``"3d"``), ``fold`` and ``timings`` it makes a
     result record for :func:`selfseg.eval.protocol.write_result`, which Table II is built from.
     """
 

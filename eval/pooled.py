@@ -18,7 +18,7 @@ KEY = "IoU"  # the metric the protocol's claims are about
 
 @dataclass
 class Seed:
-    """One seed's 2-D runs: ``runs[name]`` = that run's fold records (see :mod:`selfseg.eval.protocol`)."""
+    """One seed's 2-D runs: ``runs[name]`` = that run's fold records (see :mod:`selfseg.eval.protocol`; layout: :mod:`selfseg.eval.layout`)."""
 
     label: str  # e.g. "seed 184467"
     development: bool  # a development seed is reported beside the fresh ones, never pooled

@@ -8,7 +8,7 @@ the class, resolve its config: :func:`describe_method`) and once per fold (``fit
 * a new root holding only what is bound into it, at the same paths as outside: the system (``/usr``,
   ``/etc``, the ``/bin`` ``/lib`` links), the Python interpreter and the virtual environment, selfseg's
   source folders and a user method's own package, all **read-only**; the fold's inputs (see
-  :func:`selfseg.eval.protocol.run_fold`), read-only; its work folders and its predictions folder, writable.
+  :func:`selfseg.eval.mounts.fold_mounts`), read-only; its work folders and its predictions folder, writable.
   Nothing else exists there: not the dataset's folder, not ``--out``, not other runs, not ``$HOME`` (``HOME``,
   ``MPLCONFIGDIR`` and ``TMPDIR`` point into a private, empty tmpfs ``/tmp``);
 * its own PID namespace with a fresh ``/proc`` (no other process is visible), ``--die-with-parent`` and

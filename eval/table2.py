@@ -17,7 +17,8 @@ there are no folds and records carry ``fold = "all"``. Its stages live in the ``
 (``OUT/work/ours/<dataset>/foldall``, per-video stages in ``OUT/work/_stages/``), so they are
 shared with ``evaluate --method ours`` runs in the same ``OUT``. The stage cache holds one
 over-segmentation per video (the configured one), so the ``lccp`` row re-runs LCCP in memory on the
-cached reconstruction.
+cached reconstruction. What libraries print meanwhile (Open3D's registration warnings) goes to the run's
+library log, ``foldall/library.log`` (:mod:`selfseg.library_log`), counted in one line at the end.
 
 Scoring happens afterwards, outside the guard (:func:`selfseg.eval.points.evaluate_points`). With
 estimated poses the reconstruction's world frame is the first posed camera's frame f0; it is mapped to
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import sys
 import time
 from pathlib import Path
 
@@ -40,10 +42,13 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
-from selfseg.eval.protocol import SCORES_JSON, STAGES_DIR, WORK_DIR, git_info, provenance, write_result
+from selfseg.eval.layout import LIBRARY_LOG, SCORES_JSON, STAGES_DIR, WORK_DIR
+from selfseg.eval.protocol import write_result
+from selfseg.eval.provenance import git_info, provenance
 from selfseg.executor import executor_config, shared_executor
 from selfseg.fileio import write_json
 from selfseg.guard import ground_truth_forbidden
+from selfseg.library_log import run_log, summary
 from selfseg.method.pipeline import ROWS_3D, Ours, OursConfig, Segmentations3D, lccp_only
 from selfseg.method.recon_stage import ReconStage
 from selfseg.poses import invert_T, transform_points
@@ -264,11 +269,15 @@ def run(args: argparse.Namespace) -> int:
     where = executor_config(args, args.config)
     compute = (lambda ex: run_stats(dataset, config, args.out, executor=ex)) if args.stats else \
         (lambda ex: run_table2(dataset, config, args.out, rows, progress=not args.quiet, executor=ex))
-    if not where.distributed:
-        result = compute(None)
-    else:
-        with shared_executor(where, args.out) as executor:
-            result = compute(executor)
+    with run_log(Path(args.out) / LIBRARY_LOG.format(name=Ours.name, dataset=dataset.name, fold=FOLD)) as log:
+        if not where.distributed:
+            result = compute(None)
+        else:
+            with shared_executor(where, args.out) as executor:
+                result = compute(executor)
+    logged = summary(log)
+    if logged:
+        print(f"evaluate3d: {logged}", file=sys.stderr)
     if args.stats:
         print(format_stats({**result, "dataset": dataset.name}))
         print("statistics: " + str(args.out / STATS_JSON.format(dataset=dataset.name, config_hash=result["config_hash"])))

@@ -5,7 +5,8 @@ folds, inside the ground-truth guard, and writes the model folder atomically: ``
 network), ``config.json`` (the method's resolved config, clustering settings included) and
 ``model.json`` (model format version, method, config hash, selfseg/torch versions, the training
 data's content hash and videos). The method's caches go to ``MODEL_DIR.work/`` (a re-run reuses
-them; resumable).
+them; resumable), and what libraries print while it fits (Open3D's registration warnings) to
+``MODEL_DIR.work/library.log`` (:mod:`selfseg.library_log`), counted in one line at the end.
 
 :func:`run_segment` loads the model and segments like the method does in ``evaluate``: the network
 embeds the frame (at its training scale, inside the foreground box when trained with ``fg_crop``)
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import pickle
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -33,6 +35,7 @@ from selfseg.dataset import Dataset, DatasetError, read_depth_m, read_inst, read
 from selfseg.fileio import atomic_dir, read_json, write_json
 from selfseg.guard import ground_truth_forbidden
 from selfseg.importers import IMAGE_EXTS, image_files, read_intrinsics
+from selfseg.library_log import run_log, summary
 from selfseg.method.background import frame_foreground
 from selfseg.method.meanshift import cluster_frame
 from selfseg.method.pipeline import Ours
@@ -75,8 +78,11 @@ def train_model(method: str, data: Path, out: Path, config_path: Path | None = N
         raise FileExistsError(f"{out}: a model already exists; choose another --out or delete it")
     m = cls(config, Path(f"{out}.work") / "train" / dataset.name / "all")
     m.stage_root = Path(f"{out}.work") / "_stages"  # per-video stages: <out>.work/_stages/<dataset folder>-<hash>
-    with ground_truth_forbidden(dataset.root):
+    with ground_truth_forbidden(dataset.root), run_log(Path(f"{out}.work") / "library.log") as log:
         m.fit([dataset.video(v) for v in ids])
+    logged = summary(log)
+    if logged:
+        print(f"train: {logged}", file=sys.stderr)
     with atomic_dir(out) as tmp:
         shutil.copyfile(m.weights_path, tmp / WEIGHTS_PT)
         write_json(tmp / CONFIG_JSON, to_dict(config))

@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from selfseg.library_log import captured
 from selfseg.poses import transform_points
 
 MIN_POINTS = 8  # fewer downsampled points than this cannot be registered meaningfully
@@ -50,22 +51,24 @@ def register(src_pts: np.ndarray, tgt_pts: np.ndarray, voxel_m: float = 0.005, *
     """Align ``src_pts`` (N×3) to ``tgt_pts`` (M×3): global RANSAC on FPFH matches, ICP refine.
 
     Raises :class:`RegistrationError` when a cloud has fewer than ``MIN_POINTS`` points after
-    downsampling. ``seed`` seeds open3d's RANSAC sampler.
+    downsampling. ``seed`` seeds open3d's RANSAC sampler. What open3d prints (e.g. "Too few
+    correspondences" warnings) goes to the run's library log (:mod:`selfseg.library_log`).
     """
     if voxel_m <= 0:
         raise ValueError(f"voxel_m must be positive, got {voxel_m}")
     reg = o3d.pipelines.registration
-    src, fs = _cloud(src_pts, voxel_m, "source")
-    tgt, ft = _cloud(tgt_pts, voxel_m, "target")
-    o3d.utility.random.seed(seed)
-    dist = 1.5 * voxel_m
-    ransac = reg.registration_ransac_based_on_feature_matching(
-        src, tgt, fs, ft, True, dist, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-        reg.RANSACConvergenceCriteria(ransac_iters, ransac_confidence))
-    icp = reg.registration_icp(src, tgt, voxel_m, ransac.transformation,
-                               reg.TransformationEstimationPointToPlane(),
-                               reg.ICPConvergenceCriteria(max_iteration=icp_iters))
+    with captured():
+        src, fs = _cloud(src_pts, voxel_m, "source")
+        tgt, ft = _cloud(tgt_pts, voxel_m, "target")
+        o3d.utility.random.seed(seed)
+        dist = 1.5 * voxel_m
+        ransac = reg.registration_ransac_based_on_feature_matching(
+            src, tgt, fs, ft, True, dist, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+            reg.RANSACConvergenceCriteria(ransac_iters, ransac_confidence))
+        icp = reg.registration_icp(src, tgt, voxel_m, ransac.transformation,
+                                   reg.TransformationEstimationPointToPlane(),
+                                   reg.ICPConvergenceCriteria(max_iteration=icp_iters))
     return Registration(np.asarray(icp.transformation).copy(), float(icp.fitness), float(icp.inlier_rmse))
 
 

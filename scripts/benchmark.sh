@@ -52,7 +52,7 @@ step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
 step generate $BIN/generate_scenes --preset "$PRESET" --seed "$SEED" --out "$DATA" --workers 2 --quiet
 # The folder this dataset's scores are filed under in RESULTS (its name, or name-hash beside another dataset's).
 KEY=$($BIN/python -c 'import sys; from pathlib import Path; from selfseg.dataset import Dataset
-from selfseg.eval.protocol import results_key; print(results_key(Path(sys.argv[1]), Dataset(sys.argv[2])))' "$RESULTS" "$DATA")
+from selfseg.eval.layout import results_key; print(results_key(Path(sys.argv[1]), Dataset(sys.argv[2])))' "$RESULTS" "$DATA")
 
 kept() {  # kept NAME N METHOD [--config FILE] [--set K=V ...]: KEEP_EARLIER is set and run NAME has N fold files of
   # this dataset in RESULTS, every one recorded with the config hash METHOD has under these arguments now (a changed
@@ -122,4 +122,4 @@ wait $A || failed=1
 wait $B || failed=1
 if [ $failed = 1 ]; then echo "scripts/benchmark.sh: a stream failed; see $RUN/stream-{a,b}.log" >&2; exit 1; fi
 
-[ "$CONFIRM" = 1 ] || $BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out leaderboards/
+[ "$CONFIRM" = 1 ] || $BIN/python -m selfseg.eval.leaderboard --results "$RESULTS" --out leaderboards/

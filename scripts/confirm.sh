@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The confirmation protocol on a preset's fresh seeds (selfseg.leaderboards.confirm has the rules):
-#   1. commit every config, then  .venv/bin/python -m selfseg.leaderboards.confirm freeze --preset calibrated
+# The confirmation protocol on a preset's fresh seeds (selfseg.eval.confirm has the rules):
+#   1. commit every config, then  .venv/bin/python -m selfseg.eval.confirm freeze --preset calibrated
 #      and commit leaderboards/calibrated-freeze.json at once (the seeds follow from the freeze commit's hash);
 #   2. scripts/confirm.sh [RUNS] [PRESET]   (defaults runs/confirm, calibrated) in a clean checkout whose code and
 #      configs are the freeze commit's: every fresh seed once (scripts/benchmark.sh with CONFIRM=1, resumable), then
@@ -11,12 +11,12 @@ cd "$(dirname "$0")/.."
 RUNS=${1:-runs/confirm}
 PRESET=${2:-calibrated}
 PY=.venv/bin/python
-$PY -m selfseg.leaderboards.confirm check --preset "$PRESET"
-for seed in $($PY -m selfseg.leaderboards.confirm seeds --preset "$PRESET"); do
+$PY -m selfseg.eval.confirm check --preset "$PRESET"
+for seed in $($PY -m selfseg.eval.confirm seeds --preset "$PRESET"); do
   echo "scripts/confirm.sh: seed $seed ($(date -u +%FT%TZ))"
   SEED=$seed CONFIRM=1 scripts/benchmark.sh "$RUNS/seed-$seed" "$PRESET"
-  $PY -m selfseg.leaderboards.confirm check --preset "$PRESET"  # nothing moved while the seed ran
+  $PY -m selfseg.eval.confirm check --preset "$PRESET"  # nothing moved while the seed ran
 done
 dev=()
 [ -d "leaderboards/results/$PRESET" ] && dev=(--dev "seed 0=leaderboards/results/$PRESET")
-$PY -m selfseg.leaderboards.confirm board --preset "$PRESET" --runs "$RUNS" "${dev[@]}"
+$PY -m selfseg.eval.confirm board --preset "$PRESET" --runs "$RUNS" "${dev[@]}"

@@ -37,6 +37,6 @@ BOARDS=$RUN/leaderboards
 name=$($BIN/python -c "import sys; from selfseg.dataset import Dataset; print(Dataset(sys.argv[1]).name)" "$DATA")
 # the 3-D report first: the leaderboard links it when it lies next to it
 $BIN/inspect "$RESULTS" --dataset "$name" --out "$BOARDS/${name}_report.html"
-$BIN/python -m selfseg.leaderboards.build --results "$RESULTS" --out "$BOARDS"
+$BIN/python -m selfseg.eval.leaderboard --results "$RESULTS" --out "$BOARDS"
 cat "$BOARDS/$name.md"
 echo "3-D report: xdg-open $BOARDS/${name}_report.html"

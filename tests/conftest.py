@@ -4,9 +4,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))  # tests/analytic.py
-
-from analytic import make_dataset, two_box_scenes  # noqa: E402
+from selfseg.analytic import make_dataset, two_box_scenes
 
 
 @pytest.fixture(scope="session")

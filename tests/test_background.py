@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from analytic import box, orbit_cameras
 
+from selfseg.analytic import box, orbit_cameras
 from selfseg.method.background import (BackgroundConfig, BackgroundError, plane_pixels, remove_support_plane,
                                        up_hint_from_poses)
 from selfseg.raycast import RaycastScene, backproject, look_at

@@ -29,7 +29,9 @@ import pytest
 from selfseg.dataset import MASK_INST, SCENE_CAMERA, Dataset
 from selfseg.eval.aggregate import SegmentationEvaluator
 from selfseg.eval.cli import main as evaluate
-from selfseg.eval.protocol import WORK_DIR, EvalOptions, run_fold
+from selfseg.eval.folds import EvalOptions
+from selfseg.eval.layout import WORK_DIR
+from selfseg.eval.protocol import run_fold
 from selfseg.eval.sandbox import BWRAP_ENV, sandbox_unavailable
 from selfseg.fileio import read_json
 from selfseg.method_api import Method
@@ -549,7 +551,7 @@ def test_training_labels_only_with_the_flag(analytic_dataset, tmp_path, monkeypa
     seen = [json.loads(x) for x in (work / "seen.jsonl").read_text().splitlines()]
     assert seen and not any(s["found"] for s in seen)
 
-    from selfseg.leaderboards.build import main as build
+    from selfseg.eval.leaderboard import main as build
 
     assert build(["--results", str(out), "--out", str(tmp_path / "boards")]) == 0
     board = (tmp_path / "boards/analytic.md").read_text()
@@ -585,7 +587,7 @@ def test_without_a_sandbox_user_methods_need_trust(analytic_dataset, tmp_path, m
     for name in ("honest", "one-segment"):
         assert read_json(out / f"scores/analytic/{name}/fold0.json")["isolation"] == "unsandboxed"
 
-    from selfseg.leaderboards.build import main as build
+    from selfseg.eval.leaderboard import main as build
 
     assert build(["--results", str(out), "--out", str(tmp_path / "boards")]) == 0
     assert "**honest** *(unsandboxed)*" in (tmp_path / "boards/analytic.md").read_text()

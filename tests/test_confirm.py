@@ -4,11 +4,11 @@ import subprocess
 import pytest
 
 from selfseg.eval.cli import main as evaluate
+from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
+                               check_checkout, fresh_seeds, frozen_paths_differ)
+from selfseg.eval.leaderboard import BEGIN as BUILD_BEGIN
 from selfseg.eval.pooled import paired, pooled_videos, score
 from selfseg.fileio import read_json, write_json
-from selfseg.leaderboards.build import BEGIN as BUILD_BEGIN
-from selfseg.leaderboards.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
-                                          check_checkout, fresh_seeds, frozen_paths_differ)
 
 
 def _git(*args):

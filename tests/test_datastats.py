@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from analytic import box, cylinder, make_dataset, two_box_scenes
+from selfseg.analytic import box, cylinder, make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import evaluate3d_main as main

@@ -11,7 +11,7 @@ import pytest
 
 from selfseg.dataset import Dataset, read_inst
 from selfseg.eval.cli import main as evaluate
-from selfseg.eval.protocol import fold_split, select_test_frames
+from selfseg.eval.folds import fold_split, select_test_frames
 from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.cli import segment_main, train_main
 from selfseg.method.deploy import MODEL_JSON, preview
@@ -194,4 +194,4 @@ def test_evaluate_with_plane_foreground_gives_methods_the_estimated_mask(tmp_pat
     assert evaluate(["--method", "one-segment", "--data", str(TINY), "--folds", "0", "--limit", "1",
                      "--out", str(out), "--quiet"]) == 0
     gt = json.loads((out / "scores/tiny/one-segment/fold0.json").read_text())
-    assert rec["metrics"]["IoU"] < gt["metrics"]["IoU"]
+    assert rec["metrics"]["R"] < gt["metrics"]["R"]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from selfseg.eval.cli import main
-from selfseg.eval.protocol import FOLD_LOCK, PREDICTIONS_DIR
+from selfseg.eval.layout import FOLD_LOCK, PREDICTIONS_DIR
 from selfseg.fileio import exclusive_lock
 from selfseg.writers import write_inst
 
@@ -92,8 +92,8 @@ def test_predictions_flag_needs_external(analytic_dataset, tmp_path, capsys):
 
 
 def test_cheating_method_is_stopped(analytic_dataset, tmp_path, capsys):
-    # a user's method (tests/ is on sys.path: conftest) that reads mask_inst in fit; the registry is read in the
-    # method's own process, so a name patched into this process's registry would not reach it
+    # a user's method (tests/ is on sys.path: pytest puts it there) that reads mask_inst in fit; the registry is read
+    # in the method's own process, so a name patched into this process's registry would not reach it
     code, _, err = run_cli(capsys, "--method", "test_protocol:CheatOpen", "--data", analytic_dataset, "--out", tmp_path,
                            "--quiet")
     assert code == 2 and "tried to read ground truth" in err and "mask_inst" in err

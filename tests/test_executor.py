@@ -212,10 +212,11 @@ def test_matching_and_registration_on_ray_equal_local():
 @pytest.mark.slow
 def test_generate_on_ray_identical_and_survives_a_killed_worker(cluster, tiny_dataset, tmp_path):
     """The tiny preset on a joined 2-CPU cluster, with one task's worker process killed mid-run: Ray re-runs
-    the scene and the dataset is byte-identical to the local one (no half-written scene left)."""
+    the scene and the dataset is byte-identical to the local one (the pinned command's, as conftest makes it; no
+    half-written scene left)."""
     out = tmp_path / "data"
-    run = subprocess.Popen([*UNPINNED_COMMAND, *TINY, "--out", str(out), "--executor", "ray", "--ray-address",
-                            cluster.address], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen([sys.executable, "-m", "selfseg.generate.cli", *TINY, "--out", str(out), "--executor", "ray",
+                            "--ray-address", cluster.address], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     killed = _kill_a_task_worker(cluster, run)
     stdout, stderr = run.communicate(timeout=900)  # a hang guard: 2 loaded cores need over 300 s
     assert killed is not None, "no task worker was seen running"

@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from analytic import box, cylinder, make_dataset
-from cloud_fixtures import fused_cloud
+from selfseg.analytic import box, cylinder, fused_cloud, make_dataset
 from selfseg.dataset import Dataset
 from selfseg.method.lccp import LCCPConfig, edge_validity, lccp_segment
 from selfseg.method.overseg import OversegConfig, oversegment, prune_small

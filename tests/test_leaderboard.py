@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from selfseg.eval.cli import main as evaluate
-from selfseg.leaderboards.build import BEGIN, END, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, build, main
+from selfseg.eval.leaderboard import BEGIN, END, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, build, main
 
 
 @pytest.fixture(scope="module")
@@ -24,10 +24,11 @@ def write_points_result(root, out):
     import numpy as np
     import trimesh
 
-    from analytic import two_box_scenes
+    from selfseg.analytic import two_box_scenes
     from selfseg.dataset import Dataset
     from selfseg.eval.points import PointsEvaluator
-    from selfseg.eval.protocol import provenance, write_result
+    from selfseg.eval.protocol import write_result
+    from selfseg.eval.provenance import provenance
     from selfseg.method_api import NoConfig
 
     ds = Dataset(root)
@@ -97,7 +98,7 @@ def test_montage_shows_every_run_and_marks_fewer_folds(results, analytic_dataset
 
     import cv2
 
-    from selfseg.leaderboards.build import MONTAGE_TILE_W, _fold_label, load_results, montage
+    from selfseg.eval.leaderboard import MONTAGE_TILE_W, _fold_label, load_results, montage
 
     out = tmp_path / "results"
     shutil.copytree(results, out)

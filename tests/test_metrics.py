@@ -152,7 +152,7 @@ def test_aggregation_and_bootstrap():
 def test_points_metric_on_labelled_cloud(analytic_dataset):
     import trimesh
 
-    from analytic import two_box_scenes
+    from selfseg.analytic import two_box_scenes
     from selfseg.dataset import Dataset
     from selfseg.eval.points import PointsEvaluator, evaluate_points, gt_point_labels
 

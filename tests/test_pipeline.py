@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from analytic import make_dataset, two_box_scenes
+from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.guard import ground_truth_forbidden

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from analytic import box, cylinder
 
+from selfseg.analytic import box, cylinder
 from selfseg.method.projection import foreground_mask, project_labels, zbuffer
 from selfseg.raycast import RaycastScene, look_at
 

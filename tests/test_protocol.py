@@ -9,9 +9,11 @@ import pytest
 
 from selfseg.baselines.external import ExternalConfig, ExternalPredictions
 from selfseg.dataset import MASK_INST, SCENE_GT, Dataset, DatasetError, LabeledVideo, PosesNotGiven, read_inst
+from selfseg.eval.folds import EvalOptions, fold_split, make_folds, select_test_frames
+from selfseg.eval.layout import WORK_DIR
 from selfseg.eval.metrics import METRIC_KEYS
-from selfseg.eval.protocol import (WORK_DIR, EvalOptions, fold_split, git_info, make_folds, run_fold,
-                                   select_test_frames)
+from selfseg.eval.protocol import run_fold
+from selfseg.eval.provenance import git_info
 from selfseg.guard import GroundTruthAccessError
 from selfseg.method_api import Method
 from selfseg.registry import get_method_class

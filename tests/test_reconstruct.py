@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from analytic import bowl, box, cylinder, make_dataset
 
+from selfseg.analytic import bowl, box, cylinder, make_dataset
 from selfseg.dataset import Dataset
 from selfseg.method.background import BackgroundConfig, remove_support_plane, up_hint_from_poses
 from selfseg.method.projection import foreground_mask
@@ -17,7 +17,7 @@ from selfseg.writers import VideoWriter, write_dataset_info
 
 OBJECTS = [(box((0.08, 0.08, 0.08), (-0.08, 0.0, 0.04)), 1), (cylinder(0.04, 0.1, (0.07, 0.04, 0.05)), 2),
            (bowl(center=(0.02, -0.1, 0)), 3)]
-TABLE = box((0.8, 0.8, 0.02), (0, 0, -0.01))  # as in tests/analytic.py: top at z = 0
+TABLE = box((0.8, 0.8, 0.02), (0, 0, -0.01))  # as in selfseg/analytic.py: top at z = 0
 
 
 @pytest.fixture(scope="module")

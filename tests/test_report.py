@@ -10,15 +10,15 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from analytic import make_dataset, two_box_scenes
+from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import main as evaluate
-from selfseg.eval.protocol import SCORES_DIR
+from selfseg.eval.layout import SCORES_DIR
+from selfseg.eval.leaderboard import REPORT_HTML, build
+from selfseg.eval.report import main, write_report
 from selfseg.eval.table2 import run_table2, table2_pipeline
 from selfseg.fileio import read_json
-from selfseg.leaderboards.build import REPORT_HTML, build
-from selfseg.leaderboards.report import main, write_report
 from selfseg.method.pipeline import OursConfig
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, MATCHES_JSON, match_outcome
 from test_pipeline import FAST

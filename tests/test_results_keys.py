@@ -17,9 +17,11 @@ import pytest
 
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import main
-from selfseg.eval.protocol import EvalOptions, MethodOutputError, fold_split, run_fold
+from selfseg.eval.folds import EvalOptions, fold_split
+from selfseg.eval.leaderboard import load_results
+from selfseg.eval.protocol import run_fold
+from selfseg.eval.scoring import MethodOutputError
 from selfseg.fileio import read_json, write_json
-from selfseg.leaderboards.build import load_results
 from selfseg.method_api import Method
 from selfseg.writers import write_inst
 
@@ -181,7 +183,7 @@ def test_a_method_given_labels_gets_its_folds_own_stage_root(analytic_dataset, t
     its stages in its fold's own folder, never where a label-free method or another fold reads (measured: sharing
     one root, its camera files with the dataset's poses gave other stage keys, and the two sides rebuilt each
     other's stages while the other read them: 'segmaps/000055.png: missing file')."""
-    from selfseg.eval.protocol import method_stage_root
+    from selfseg.eval.mounts import method_stage_root
 
     ds = Dataset(analytic_dataset)
     fmt = lambda name, k: {"name": name, "dataset": ds.name, "fold": k}  # noqa: E731

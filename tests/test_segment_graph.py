@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from analytic import box
-from cloud_fixtures import fused_cloud
+from selfseg.analytic import box, fused_cloud
 from selfseg.fileio import FileFormatError
 from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
 

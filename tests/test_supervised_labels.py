@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from analytic import box, make_dataset
+from selfseg.analytic import box, make_dataset
 from selfseg.baselines.supervised import gt_label_source, gt_labels, gt_object_labels
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.method.embed_method import EmbeddingMethodConfig

@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from analytic import bowl, box, cylinder
-from cloud_fixtures import fused_cloud
+from selfseg.analytic import bowl, box, cylinder, fused_cloud
 from selfseg.method.lccp import LCCPConfig, lccp_segment
 from selfseg.method.overseg import OversegConfig, oversegment
 from selfseg.method.symseg import detect_rotational_symmetries, symseg_segment

@@ -5,15 +5,15 @@ import shutil
 import numpy as np
 import pytest
 
-from analytic import make_dataset, two_box_scenes
+from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import evaluate3d_main as main
+from selfseg.eval.layout import FRAMES_JSONL, SCORES_JSON, WORK_DIR
+from selfseg.eval.leaderboard import main as build_leaderboards
 from selfseg.eval.points import evaluate_points
-from selfseg.eval.protocol import FRAMES_JSONL, SCORES_JSON, WORK_DIR
 from selfseg.eval.table2 import FOLD, ROWS, alignment, format_matching, run_table2, segment_scenes
 from selfseg.fileio import read_json
-from selfseg.leaderboards.build import main as build_leaderboards
 from selfseg.method.pipeline import OursConfig
 from test_pipeline import FAST
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from analytic import make_dataset, two_box_scenes
+from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.guard import ground_truth_forbidden
 from selfseg.method.embed_method import EmbeddingMethodConfig

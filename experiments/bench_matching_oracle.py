@@ -1,7 +1,7 @@
 """Diagnostic, not a test: is it φ1 or matching + pruning that keeps graph matching from merging?
 
-    .venv/bin/python bench/bench_matching_oracle.py --data DIR --out RESULTS [--config FILE] [--set k=v ...]
-                                                    [--json bench/results/matching_oracle.json]
+    .venv/bin/python experiments/bench_matching_oracle.py --data DIR --out RESULTS [--config FILE] [--set k=v ...]
+                                                    [--json experiments/results/matching_oracle.json]
 
 Runs the pseudo-label step (``ours`` and ``v3_no_pruning``) on the scenes of an ``evaluate3d`` run
 (``--out`` is its results folder: the cached reconstructions, over-segments and φ1 are reused) twice:
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="the evaluate3d results folder whose stages are reused")
     p.add_argument("--config", default=None)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--json", default="bench/results/matching_oracle.json")
+    p.add_argument("--json", default="experiments/results/matching_oracle.json")
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config, args.set)

@@ -1,28 +1,24 @@
 """Figure, not a test: does a mug's thin handle stay with its body under LCCP and under LCCP + SymSeg?
 
-    .venv/bin/python bench/bench_mug_handle.py [--out bench/results/mug_handle.json]
+    .venv/bin/python experiments/bench_mug_handle.py [--out experiments/results/mug_handle.json]
 
 PCL's LCCP at its defaults tends to keep a thin handle with the body; SymSeg's rotationally symmetric
 body segment can cut it off. The mug is analytic (a cylinder of radius 4 cm and height 10 cm, a torus
 handle of radius 3 cm and tube radius 7 mm), ray-cast from all around with 1 mm depth noise
-(``tests/cloud_fixtures.fused_cloud``). Prints and writes, per method, the point count, the largest
+(:func:`selfseg.analytic.fused_cloud`). Prints and writes, per method, the point count, the largest
 segment sizes and whether the handle's majority segment differs from the body's.
 """
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from analytic import cylinder  # noqa: E402
-from cloud_fixtures import fused_cloud  # noqa: E402
-from selfseg.fileio import write_json  # noqa: E402
-from selfseg.method.lccp import LCCPConfig, lccp_segment  # noqa: E402
-from selfseg.method.overseg import OversegConfig, oversegment  # noqa: E402
+from selfseg.analytic import cylinder, fused_cloud
+from selfseg.fileio import write_json
+from selfseg.method.lccp import LCCPConfig, lccp_segment
+from selfseg.method.overseg import OversegConfig, oversegment
 
 
 def mug_cloud() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

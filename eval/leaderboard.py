@@ -1,15 +1,15 @@
 """Rebuild the leaderboards from result files: one markdown per dataset, a bar chart, a montage.
 
-    python -m selfseg.leaderboards.build --results results/ --out leaderboards/
+    python -m selfseg.eval.leaderboard --results results/ --out leaderboards/
 
-Reads ``RESULTS/scores/<dataset>/<name>/fold<k>.json`` (see :mod:`selfseg.eval.protocol`) and
+Reads ``RESULTS/scores/<dataset>/<name>/fold<k>.json`` (layout: :mod:`selfseg.eval.layout`) and
 writes, per dataset, ``<dataset>.md`` (only the part between the GENERATED markers is replaced;
 text around it is kept), ``<dataset>_iou.png`` (IoU per method, mean ± std over folds) and
 ``<dataset>_montage.png`` (a column per test frame of a few test videos: RGB, ground truth, then every 2-D
 run's prediction in a row of its own; segments coloured like the ground-truth object they are matched to,
 unmatched ones grey-blue). Runs that scored fewer folds than the dataset's most are marked in the chart and
 the montage (``name (fold 0)``). When ``<dataset>_report.html`` (the ``inspect`` report,
-:mod:`selfseg.leaderboards.report`) lies in the output folder, the markdown links it.
+:mod:`selfseg.eval.report`) lies in the output folder, the markdown links it.
 Output depends only on the result files, the predictions and whether that report exists, so a rebuild is byte-identical.
 
 Rows: Table I lists every 2-D run except ablation variants; Table III lists runs named ``ours``
@@ -33,11 +33,12 @@ from selfseg.dataset import Dataset, DatasetError, read_inst
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.metrics import METRIC_KEYS, segment_metrics
 from selfseg.eval.points import POINT_KEYS
-from selfseg.eval.protocol import PREDICTION_PNG, PREDICTIONS_DIR, SCHEMA_VERSION, SCORES_DIR, SCORES_JSON
+from selfseg.eval.layout import PREDICTION_PNG, PREDICTIONS_DIR, SCHEMA_VERSION, SCORES_DIR, SCORES_JSON
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, hash_json, read_json
 
-BEGIN = "<!-- BEGIN GENERATED (selfseg.leaderboards.build; edits inside are overwritten) -->"
+BEGIN = "<!-- BEGIN GENERATED (selfseg.eval.leaderboard; edits inside are overwritten) -->"
 END = "<!-- END GENERATED -->"
+LEADERBOARDS = Path(__file__).resolve().parents[1] / "leaderboards"  # the published leaderboards (default --out)
 MONTAGE_FRAMES = 3
 REPORT_HTML = "{dataset}_report.html"  # the `inspect` report the leaderboard links when it lies next to it
 MONTAGE_TILE_W = 240
@@ -299,7 +300,7 @@ def replace_generated(old: str | None, generated: str, title: str, begin: str = 
     """Splice ``generated`` (which starts with ``begin`` and ends with ``end``) between those markers of ``old``
     (or a new page with ``title``); text outside them is kept."""
     if old is None:
-        return f"# {title}\n\nRebuild with `python -m selfseg.leaderboards.build --results results/ --out leaderboards/`.\n\n{generated}"
+        return f"# {title}\n\nRebuild with `python -m selfseg.eval.leaderboard --results results/ --out leaderboards/`.\n\n{generated}"
     i, j = old.find(begin), old.find(end)
     if i < 0 or j < i:
         return old.rstrip("\n") + "\n\n" + generated
@@ -331,9 +332,10 @@ def build(results: str | Path, out: str | Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m selfseg.leaderboards.build", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m selfseg.eval.leaderboard", description=__doc__.splitlines()[0])
     p.add_argument("--results", type=Path, default=Path("results"), help="results folder of `evaluate --out`")
-    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="where the markdown goes")
+    p.add_argument("--out", type=Path, default=LEADERBOARDS,
+                   help="where the markdown goes (default: the repository's leaderboards/)")
     args = p.parse_args(argv)
     if not (args.results / SCORES_DIR).is_dir():
         print(f"build: error: {args.results / SCORES_DIR}: no results folder (run `evaluate` first)", file=sys.stderr)

@@ -1,7 +1,7 @@
 """Diagnostic, not a test: what pruning's criterion 3 (isolation) drops, scored by ground truth.
 
-    .venv/bin/python bench/bench_isolation.py --data runs/dev7/data --config configs/ours-calibrated.yaml
-        --results runs/dev7/levers-ours --run ours@wit02 [--folds 0] [--json bench/results/isolation.json]
+    .venv/bin/python experiments/bench_isolation.py --data runs/dev7/data --config configs/ours-calibrated.yaml
+        --results runs/dev7/levers-ours --run ours@wit02 [--folds 0] [--json experiments/results/isolation.json]
 
 For each fold's pseudo stage (RESULTS/work/<run>/<dataset>/fold<k>/):
 
@@ -25,7 +25,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
+from common import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -101,7 +101,7 @@ def fold_rows(fold_dir: Path, seg, gt_inst, dataset: Dataset, config: OursConfig
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = fold_bench_parser(__doc__, "bench/results/isolation.json").parse_args(argv)
+    args = fold_bench_parser(__doc__, "experiments/results/isolation.json").parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config)
     seg, _, gt_inst = gt_labeled(dataset, config, args.results)
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {what:<9} {n:>4}  {k}")
         for k, v in r["cover"].items():
             print(f"  cover of extras, {k} ({len(v)}): {v}")
-    save(args.json, "what criterion 3 drops, by ground truth (bench/bench_isolation.py)", args.data, dataset,
+    save(args.json, "what criterion 3 drops, by ground truth (experiments/bench_isolation.py)", args.data, dataset,
          args.config, rows)
     return 0
 

@@ -1,10 +1,10 @@
 """Calibration sweeps for the `calibrated` preset, on development seeds only (never seed 0).
 
     # contact only: physics drops (no rendering), touching GT pairs per scene for each layout
-    .venv/bin/python bench/bench_calibrate.py layout --preset calibrated --seeds 7,11 --scenes 12 \\
-        --variant "pile:physics.layout=pile" --variant "spread:physics.layout=spread" [--out bench/results/calibrate_layout.json]
+    .venv/bin/python experiments/bench_calibrate.py layout --preset calibrated --seeds 7,11 --scenes 12 \\
+        --variant "pile:physics.layout=pile" --variant "spread:physics.layout=spread" [--out experiments/results/calibrate_layout.json]
     # data statistics (evaluate3d --stats) of generated development data under several over-segmentation settings
-    .venv/bin/python bench/bench_calibrate.py stats --data runs/dev7 --data runs/dev11 \\
+    .venv/bin/python experiments/bench_calibrate.py stats --data runs/dev7 --data runs/dev11 \\
         --variant "default:" --variant "trunc3:recon.trunc_voxel_multiplier=3" [--config FILE] [--out ...]
 
 A variant is ``NAME:key=value,key=value`` (generation overrides for ``layout``: preset fields with dotted
@@ -15,17 +15,17 @@ Table II LCCP row: P ≥ .97, R ≤ .85, and a gt-merging ceiling ≥ .93 (over 
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from levers import parse_variant
+from common import parse_variant
 
 from selfseg.config import load_config, to_dict
 from selfseg.dataset import Dataset
 from selfseg.eval.datastats import TOUCH_DIST_M, mesh_distances
+from selfseg.eval.provenance import machine
 from selfseg.eval.table2 import run_stats
 from selfseg.fileio import write_json
 from selfseg.generate.presets import preset_config
@@ -149,8 +149,8 @@ def main(argv=None) -> int:
     if args.mode == "layout" and 0 in args.seeds:
         p.error("seed 0 makes the test folds; calibrate on development seeds only")
     results = layout(args) if args.mode == "layout" else stats(args)
-    out = args.out or Path(f"bench/results/calibrate_{args.mode}.json")
-    write_json(out, {"mode": args.mode, "argv": sys.argv[1:], "machine": platform.machine(), "targets": TARGETS,
+    out = args.out or Path(f"experiments/results/calibrate_{args.mode}.json")
+    write_json(out, {"mode": args.mode, "argv": sys.argv[1:], "machine": machine(), "targets": TARGETS,
                      "results": results})
     print(f"wrote {out}")
     return 0

@@ -1,12 +1,12 @@
 """Consistency of the over-segmentation under sub-voxel shifts: the same cloud, translated by a few
 offsets smaller than a voxel, should be cut into the same supervoxels and LCCP segments.
 
-    .venv/bin/python bench/bench_overseg_consistency.py --recon OUT/work/_stages/tiny/recon \\
-        [--out bench/results/overseg_consistency.json] [--shifts 5]
+    .venv/bin/python experiments/bench_overseg_consistency.py --recon OUT/work/_stages/tiny/recon \\
+        [--out experiments/results/overseg_consistency.json] [--shifts 5]
 
-Clouds: the analytic scene of ``bench_overseg.py`` (ray-cast, 1 mm noise, one point per 5 mm cell:
-coordinates off any lattice) and every reconstructed TSDF cloud under ``--recon`` (``recon`` stage
-folders of ``evaluate``/``evaluate3d``: 5 mm TSDF voxels, so two of each point's three coordinates lie on
+Clouds: the analytic scene of ``bench/bench_overseg.py`` (:func:`selfseg.analytic.scene_meshes`; ray-cast, 1 mm
+noise, one point per 5 mm cell: coordinates off any lattice) and every reconstructed TSDF cloud under ``--recon``
+(``recon`` stage folders of ``evaluate``/``evaluate3d``: 5 mm TSDF voxels, so two of each point's three coordinates lie on
 the 5 mm lattice). Each cloud is over-segmented at offset 0 and at ``--shifts`` − 1 random offsets
 (uniform in [0, 1) voxel per axis, seed 0), with the grids anchored at the world origin (the former
 code) and on the cloud (:func:`selfseg.method.supervoxels.grid_origin`). Reported per cloud and anchor:
@@ -17,22 +17,17 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import platform
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_overseg import scene_meshes  # noqa: E402
-from cloud_fixtures import fused_cloud  # noqa: E402
-from selfseg.eval.points import adjusted_rand_index  # noqa: E402
-from selfseg.fileio import write_json  # noqa: E402
-from selfseg.method.lccp import LCCPConfig, lccp_from_supervoxels  # noqa: E402
-from selfseg.method.recon_stage import CLOUD_NPZ, load_recon  # noqa: E402
-from selfseg.method.supervoxels import supervoxel_clustering  # noqa: E402
+from selfseg.analytic import fused_cloud, scene_meshes
+from selfseg.eval.points import adjusted_rand_index
+from selfseg.eval.provenance import machine
+from selfseg.fileio import write_json
+from selfseg.method.lccp import LCCPConfig, lccp_from_supervoxels
+from selfseg.method.recon_stage import CLOUD_NPZ, load_recon
+from selfseg.method.supervoxels import supervoxel_clustering
 
 ANCHORS = ("world", "cloud")
 
@@ -96,7 +91,7 @@ def main(argv=None) -> None:
         print("TSDF clouds, mean over videos: " + "; ".join(f"{a}: {summary[a]}" for a in ANCHORS))
     write_json(args.out, {"lccp": {"voxel_resolution_m": v, "seed_resolution_m": cfg.seed_resolution_m},
                           "offsets_m": offsets.tolist(), "clouds": results, "tsdf_summary": summary,
-                          "machine": {"python": platform.python_version(), "cpus": __import__("os").cpu_count()}})
+                          "machine": machine()})
     print(f"wrote {args.out}")
 
 

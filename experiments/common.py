@@ -1,33 +1,88 @@
-"""Diagnostic, not a test: ground-truth scores of the merges each Table I fold's matching step made on its
-training videos (what ``evaluate3d`` reports for all videos as one collection, per fold instead).
+"""What the experiment scripts share; no script imports another.
 
-    .venv/bin/python bench/bench_fold_merges.py --data runs/calibrated/data --config configs/ours-calibrated.yaml
-        --results runs/calibrated/results --run ours [--run ours-v4 ...] [--json bench/results/fold_merges.json]
+* config variants (``bench_supervised_levers.py``, ``bench_matching_levers.py``, ``bench_calibrate.py``): parsing a
+  variant, running one variant's command, and keeping earlier rows in the JSON;
+* the runs' fold folders (``bench_fold_merges.py``, ``bench_isolation.py``, ``bench_registration_oracle.py``):
+  the arguments, each fold's pseudo-label stage, ``evaluate3d``'s segments with their ground-truth labels, and
+  writing the rows with the dataset and config they were measured on.
 
-Reads the segments, reconstructions and GT point labels from ``evaluate3d``'s stage cache under RESULTS (run
-it first; its stages are built from the same videos with the same settings as the folds' own; the number of
-points and segments of every video is checked) and each fold's pseudo-labels and merge lists from
-RESULTS/work/<run>/<dataset>/fold<k>/.
+Every script writes its JSON to ``experiments/results/`` unless told otherwise; the dated pages of
+``docs/experiments/`` cite them.
 """
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
+import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from selfseg.config import load_config
 from selfseg.dataset import Dataset
-from selfseg.eval.merges import merge_scores
+from selfseg.eval.layout import results_key
 from selfseg.eval.points import GT_MAX_DIST_M
-from selfseg.eval.protocol import results_key
-from selfseg.eval.table2 import labeled_scenes, merge_inputs
+from selfseg.eval.table2 import labeled_scenes
 from selfseg.fileio import read_json, write_json
-from selfseg.method.pipeline import LABELS_NPY, PSEUDO_CACHE_DIR, PSEUDO_STAGE, OursConfig
+from selfseg.method.pipeline import PSEUDO_CACHE_DIR, PSEUDO_STAGE, OursConfig
 from selfseg.method.pruning import PruneConfig
-from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, SceneData, segment_clouds
+from selfseg.method.pseudolabels import SceneData, segment_clouds
 from selfseg.stages import StageCache
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """"NAME:a=1,b.c=[2,3]" → ("NAME", ["a=1", "b.c=[2,3]"]): commas inside brackets stay in their value."""
+    name, _, rest = text.partition(":")
+    if not name or any(c in name for c in "/@ "):
+        raise ValueError(f"variant {text!r}: needs a NAME (no '/', '@' or space) before ':'")
+    items, depth, cur = [], 0, ""
+    for c in rest:
+        depth += (c in "[{") - (c in "]}")
+        if c == "," and depth == 0:
+            items.append(cur)
+            cur = ""
+        else:
+            cur += c
+    items.append(cur)
+    sets = [s.strip() for s in items if s.strip()]
+    bad = [s for s in sets if "=" not in s]
+    if bad:
+        raise ValueError(f"variant {text!r}: {bad} are not key=value")
+    return name, sets
+
+
+def run_variant_command(bench: str, name: str, cmd: list[str], config: str, sets: list[str]) -> float:
+    """Run ``cmd`` with ``--config config`` (if given) and a ``--set`` per item of ``sets``, printed first;
+    returns its wall time (s). A failed command ends the bench with one line."""
+    cmd = [*cmd, *(["--config", config] if config else []), *[a for s in sets for a in ("--set", s)]]
+    print(f"[{name}] {' '.join(cmd)}", flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.call(cmd)
+    if rc != 0:
+        raise SystemExit(f"{bench}: variant {name}: {Path(cmd[0]).name} exited with {rc}")
+    return time.perf_counter() - t0
+
+
+def save_rows(path: str | Path, rows: list[dict], ident: Callable[[dict], tuple], what: str) -> None:
+    """Write ``rows`` to the JSON at ``path`` after the rows it already holds, minus those with the same ``ident``."""
+    path = Path(path)
+    old = read_json(path)["rows"] if path.is_file() else []
+    new_ids = {ident(r) for r in rows}
+    write_json(path, {"what": what, "rows": [r for r in old if ident(r) not in new_ids] + rows})
+
+
+def parse_inputs(bench: str, variants: list[str], data: str) -> list[tuple[str, list[str]]] | None:
+    """The parsed ``--variant`` texts, or None after one line on stderr when one is malformed or ``data`` is
+    not a dataset folder (the bench then exits 2)."""
+    if not (Path(data) / "dataset_info.json").is_file():
+        print(f"{bench}: {data}: not a dataset (no dataset_info.json)", file=sys.stderr)
+        return None
+    try:
+        return [parse_variant(v) for v in variants]
+    except ValueError as e:
+        print(f"{bench}: {e}", file=sys.stderr)
+        return None
 
 
 def pseudo_stage(fold_dir: Path) -> Path:
@@ -87,43 +142,3 @@ def save(path: str, what: str, data: str, dataset: Dataset, config: str, rows: l
     write_json(path, {"what": what, "data": str(Path(data).resolve()), "dataset_hash": dataset.content_hash(),
                       "config": config, "rows": rows})
     print(f"wrote {path}")
-
-
-def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
-    """merge_scores of one fold's pseudo stage (``fold_dir``/pseudo/all/scenes) over its training videos."""
-    stage = pseudo_stage(fold_dir)
-    diag = read_json(stage / DIAGNOSTICS_JSON)
-    scenes = {s.video_id: s for s in seg.scenes if s.video_id in diag["scenes"]}
-    point_obj = {vid: np.load(stage / LABELS_NPY.format(video_id=vid)) for vid in scenes}
-    for vid, s in scenes.items():
-        if point_obj[vid].shape != np.shape(s.graph.labels) or diag["scenes"][vid]["segments"] != s.graph.n_segments:
-            raise SystemExit(f"bench_fold_merges: {stage}: video {vid}'s reconstruction or segments differ from "
-                             "evaluate3d's; the scores would not be comparable")
-    seg_inst, inst_obj, seg_object, edges = merge_inputs(dataset, scenes.values(), point_obj, gt_inst)
-    return {"videos": sorted(scenes), "merges": diag["totals"]["merges"],
-            "outcomes": diag["pruning"]["matches_by_outcome"],
-            **merge_scores(diag, seg_inst, inst_obj, seg_object, edges)}
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = fold_bench_parser(__doc__, "bench/results/fold_merges.json").parse_args(argv)
-    dataset = Dataset(args.data)
-    config = load_config(OursConfig, args.config)
-    seg, _, gt_inst = gt_labeled(dataset, config, args.results)
-    folds = runs_folds("bench_fold_merges", args, dataset)
-    if folds is None:
-        return 2
-    rows = [{"run": run, "fold": f.name, **fold_scores(f, seg, gt_inst, dataset)} for run, f in folds]
-    print(f"{'run':<10} {'fold':<6} {'merges':>6} {'within P':>9} {'within R':>9} {'across P':>9} {'across R':>9}")
-    f = lambda x: "–" if x is None else f"{x:.3f}"  # noqa: E731
-    for r in rows:
-        w, a = r["within"], r["across"]
-        print(f"{r['run']:<10} {r['fold']:<6} {r['merges']:>6} {f(w['precision']):>9} {f(w['recall']):>9} "
-              f"{f(a['precision']):>9} {f(a['recall']):>9}")
-    save(args.json, "GT scores of each fold's merges (bench/bench_fold_merges.py)", args.data, dataset, args.config,
-         rows)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,7 +1,11 @@
-"""Small analytic datasets for tests: trimesh shapes on a table, rendered by ray casting.
+"""Analytic scenes for the tests and the benchmarks: trimesh shapes on a table, rendered by ray casting, no Blender.
 
-They are written in the real dataset format (through :class:`selfseg.writers.VideoWriter`),
-so tests exercise the same readers as generated data, without Blender.
+:func:`make_dataset` writes small datasets in the real dataset format (through :class:`selfseg.writers.VideoWriter`),
+so tests exercise the same readers as generated data. :func:`fused_cloud` gives fused-looking point clouds for the
+over-segmentation: the meshes (on a table, top at z = 0) ray-cast from cameras all around, the depth back-projected
+with ≈1 mm noise, one point per ``grid_m`` cell kept (like a TSDF surface at that voxel size) and the table
+dropped (z < ``table_cut_m``); only visible surfaces appear, as in a real reconstruction. :func:`scene_meshes` is
+the 9-object tabletop of the over-segmentation benchmarks.
 """
 from __future__ import annotations
 
@@ -10,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from selfseg.raycast import RaycastScene, look_at
+from selfseg.raycast import RaycastScene, backproject, look_at
 from selfseg.writers import VideoWriter, write_dataset_info
 
 TABLE_ID = 65535  # internal id of the table in the ray-cast scene; written as 0 (background)
+CLOUD_TABLE_ID = 999  # the table's id in fused_cloud's ray-cast scene
 
 
 def box(size, center) -> trimesh.Trimesh:
@@ -100,3 +105,41 @@ def two_box_scenes() -> list[list[tuple[trimesh.Trimesh, int]]]:
         [(box((0.06, 0.1, 0.05), (0.0, 0.1, 0.025)), 2), (cylinder(0.04, 0.1, (0.0, -0.08, 0.05)), 3),
          (box((0.08, 0.08, 0.08), (-0.12, -0.02, 0.04)), 1)],
     ]
+
+
+def fused_cloud(meshes, n_views=16, grid_m=0.004, noise_m=0.001, table_cut_m=0.004, seed=0,
+                radius=0.5, heights=(0.25, 0.5), width=240, height=180, fx=220.0):
+    """(points N×3 m, outward normals N×3, mesh index N (0-based)) of the visible object surfaces."""
+    rng = np.random.default_rng(seed)
+    table = box((1.0, 1.0, 0.02), (0, 0, -0.01))
+    scene = RaycastScene.from_meshes(list(meshes) + [table], ids=list(range(1, len(meshes) + 1)) + [CLOUD_TABLE_ID])
+    K = np.array([[fx, 0, width / 2 - 0.5], [0, fx, height / 2 - 0.5], [0, 0, 1.0]])
+    target = np.mean([m.bounds.mean(0) for m in meshes], axis=0)
+    P, N, L = [], [], []
+    for h in heights:
+        for a in np.linspace(0, 2 * np.pi, n_views, endpoint=False) + h:
+            T = look_at([target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), h], target)
+            depth, inst, nrm = scene.render(K, T, width, height)
+            depth = np.where(depth > 0, depth + rng.normal(0, noise_m, depth.shape), 0).astype(np.float32)
+            pts, vu = backproject(depth, K, (inst > 0) & (inst != CLOUD_TABLE_ID))
+            P.append(pts @ T[:3, :3].T + T[:3, 3])
+            N.append(nrm[vu[:, 0], vu[:, 1]] @ T[:3, :3].T)
+            L.append(inst[vu[:, 0], vu[:, 1]].astype(np.int64) - 1)
+    P, N, L = np.concatenate(P), np.concatenate(N), np.concatenate(L)
+    _, first = np.unique(np.floor(P / grid_m).astype(np.int64), axis=0, return_index=True)
+    P, N, L = P[first], N[first], L[first]
+    keep = P[:, 2] > table_cut_m
+    return P[keep], N[keep], L[keep]
+
+
+def scene_meshes() -> list[trimesh.Trimesh]:
+    """Nine objects on a table (boxes, cylinders, bowls, a mug with its handle), some touching."""
+    handle = trimesh.creation.torus(0.025, 0.006)
+    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    handle.apply_translation((0.2 + 0.04, -0.15, 0.05))
+    return [box((0.08, 0.08, 0.08), (-0.2, -0.15, 0.04)), box((0.06, 0.05, 0.04), (-0.13, -0.15, 0.02)),
+            cylinder(0.035, 0.12, (0.0, -0.15, 0.06)), bowl(0.08, 0.05, 0.006, (0.0, 0.05, 0.0)),
+            cylinder(0.02, 0.1, (0.0, 0.05, 0.056)), box((0.12, 0.04, 0.03), (-0.22, 0.08, 0.015)),
+            box((0.05, 0.06, 0.1), (-0.135, 0.08, 0.05)),
+            trimesh.util.concatenate([cylinder(0.035, 0.09, (0.2, -0.15, 0.045)), handle]),
+            bowl(0.06, 0.04, 0.005, (0.2, 0.12, 0.0))]

@@ -1,7 +1,7 @@
 """Diagnostic, not a test: how much of a method's IoU is lost to fragmentation (objects split in pieces)?
 
-    .venv/bin/python bench/bench_fragmentation.py --data DIR --results RESULTS --method M [--method M2 ...]
-                                                   [--json bench/results/fragmentation.json]
+    .venv/bin/python experiments/bench_fragmentation.py --data DIR --results RESULTS --method M [--method M2 ...]
+                                                   [--json experiments/results/fragmentation.json]
 
 For every scored frame of every fold of each method's run in RESULTS (``evaluate``'s predictions and
 per-frame records), each predicted segment on the GT foreground is relabelled with its majority GT
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from selfseg.dataset import Dataset, read_inst
+from selfseg.eval.layout import FRAMES_JSONL, PREDICTION_PNG, PREDICTIONS_DIR
 from selfseg.eval.metrics import segment_metrics
-from selfseg.eval.protocol import FRAMES_JSONL, PREDICTION_PNG, PREDICTIONS_DIR
 from selfseg.fileio import write_json
 
 
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", required=True)
     p.add_argument("--results", required=True)
     p.add_argument("--method", action="append", required=True)
-    p.add_argument("--json", default="bench/results/fragmentation.json")
+    p.add_argument("--json", default="experiments/results/fragmentation.json")
     args = p.parse_args(argv)
     ds = Dataset(args.data)
     rows = []

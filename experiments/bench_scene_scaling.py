@@ -1,8 +1,8 @@
 """Diagnostic, not a test: how a learned method's IoU grows with the number of training scenes.
 
-    .venv/bin/python bench/bench_scene_scaling.py --data DIR --config configs/supervised-benchmark.yaml
+    .venv/bin/python experiments/bench_scene_scaling.py --data DIR --config configs/supervised-benchmark.yaml
         [--method supervised] [--sizes 2,4,8,16] [--test 4] [--set KEY=VALUE ...] [--work runs/scaling]
-        [--json bench/results/scene_scaling.json]
+        [--json experiments/results/scene_scaling.json]
 
 The last ``--test`` videos of DIR are the fixed test set (every 10th frame, ground-truth foreground, as
 ``evaluate``); for each size n the method is trained on the first n videos. Run it on a development set
@@ -21,7 +21,7 @@ from pathlib import Path
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.aggregate import SegmentationEvaluator
-from selfseg.eval.protocol import EvalOptions, select_test_frames
+from selfseg.eval.folds import EvalOptions, select_test_frames
 from selfseg.fileio import write_json
 from selfseg.guard import ground_truth_forbidden
 from selfseg.registry import get_method_class
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", default="2,4,8,16", help="training scene counts, comma-separated")
     p.add_argument("--test", type=int, default=4, help="the last TEST videos are the test set")
     p.add_argument("--work", default="runs/scaling")
-    p.add_argument("--json", default="bench/results/scene_scaling.json")
+    p.add_argument("--json", default="experiments/results/scene_scaling.json")
     args = p.parse_args(argv)
     ds = Dataset(args.data)
     sizes = [int(s) for s in args.sizes.split(",")]

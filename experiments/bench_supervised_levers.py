@@ -1,8 +1,8 @@
 """Diagnostic, not a test: the supervised bound (or another learned method) under named config variants.
 
-    .venv/bin/python bench/bench_supervised_levers.py --data DIR --config configs/supervised-calibrated.yaml
+    .venv/bin/python experiments/bench_supervised_levers.py --data DIR --config configs/supervised-calibrated.yaml
         --variant NAME:key=value,key=value ... [--method supervised] [--folds 0] [--set KEY=VALUE ...]
-        [--out runs/levers] [--json bench/results/supervised_levers.json] [--networks-of NAME]
+        [--out runs/levers] [--json experiments/results/supervised_levers.json] [--networks-of NAME]
 
 Each variant runs ``evaluate --method METHOD --data DIR --config CONFIG --set ... --folds FOLDS --name
 METHOD@NAME --out OUT`` (the real CLI and protocol, in its own process), one variant after the other, then
@@ -23,10 +23,10 @@ import shutil
 import sys
 from pathlib import Path
 
-from levers import parse_inputs, run_variant_command, save_rows
+from common import parse_inputs, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
-from selfseg.eval.protocol import SCORES_JSON, WORK_DIR, results_key
+from selfseg.eval.layout import SCORES_JSON, WORK_DIR, results_key
 from selfseg.fileio import read_json
 
 
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="override for every variant (e.g. train.threads=1)")
     p.add_argument("--folds", default="0,1,2")
     p.add_argument("--out", default="runs/levers", help="evaluate's results folder")
-    p.add_argument("--json", default="bench/results/supervised_levers.json")
+    p.add_argument("--json", default="experiments/results/supervised_levers.json")
     p.add_argument("--networks-of", default="", metavar="NAME",
                    help="start every other variant from variant NAME's trained networks (inference options)")
     args = p.parse_args(argv)
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [run_variant(args, name, sets, folds) for name, sets in variants]
     ident = lambda r: (r["dataset_hash"], r["method"], r["variant"], tuple(r["folds"]))  # noqa: E731
     save_rows(args.json, rows, ident,
-              "IoU of named config variants through evaluate (bench/bench_supervised_levers.py)")
+              "IoU of named config variants through evaluate (experiments/bench_supervised_levers.py)")
     print(f"{'variant':<24} {'method':<12} {'folds':<6} {'IoU per fold':<22} {'mean':>5} {'P':>5} {'R':>5} "
           f"{'wall s':>7}  sets")
     for r in rows:

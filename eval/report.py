@@ -2,7 +2,7 @@
 
     inspect RESULTS [--dataset NAME] --out report.html [--max-points 3000]
 
-``RESULTS`` is what ``evaluate --out`` / ``evaluate3d --out`` wrote (layout: :mod:`selfseg.eval.protocol`), or
+``RESULTS`` is what ``evaluate --out`` / ``evaluate3d --out`` wrote (layout: :mod:`selfseg.eval.layout`), or
 one dataset's folder in it (``RESULTS/scores/<dataset>``). The report (plotly; plotly.js embedded once, so the
 file opens offline in any browser) shows for one dataset:
 
@@ -17,7 +17,7 @@ file opens offline in any browser) shows for one dataset:
   precision, recall and decision; and each match's outcome (``merged`` = accepted, else its pruning reason),
   counted as in ``diagnostics.json``.
 - Tables I–III, the IoU plot and the montage of every 2-D run, as in the leaderboard
-  (:mod:`selfseg.leaderboards.build`).
+  (:mod:`selfseg.eval.leaderboard`).
 
 One scene and one match are drawn at a time (buttons switch them): a browser keeps about 16 WebGL contexts
 per page and every 3-D panel takes one. Ground truth is read (an inspection tool, not the method). Bad input
@@ -38,11 +38,11 @@ import numpy as np
 from selfseg.config import ConfigError, from_dict
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt
+from selfseg.eval.layout import SCORES_DIR
+from selfseg.eval.leaderboard import TABLES_NOTE, bar_chart, load_results, montage, palette, tables
 from selfseg.eval.points import gt_point_labels
-from selfseg.eval.protocol import SCORES_DIR
 from selfseg.eval.table2 import alignment, table2_pipeline
 from selfseg.fileio import FileFormatError, atomic_write_text, read_json
-from selfseg.leaderboards.build import TABLES_NOTE, bar_chart, load_results, montage, palette, tables
 from selfseg.method.pipeline import LABELS_NPY, SEGMENTS_NPZ, OursConfig
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON, MATCHES_JSON, match_outcome
 from selfseg.method.recon_stage import load_recon
@@ -339,7 +339,7 @@ def matches_section(scenes: list[SceneView], matches: dict, diagnostics: dict, m
 
 
 def leaderboard_section(groups: dict, results: Path, dataset: str) -> str:
-    """Tables I–III, the IoU plot and the montage, as :mod:`selfseg.leaderboards.build` makes them."""
+    """Tables I–III, the IoU plot and the montage, as :mod:`selfseg.eval.leaderboard` makes them."""
     parts = [f"<h2>{md_inline(title)}</h2>" + md_table(lines) for title, lines in tables(groups, dataset)]
     return (f"<p>{md_inline(TABLES_NOTE)}</p>" + parts[0]
             + _png(bar_chart(groups, f"IoU per method: {dataset}"), "IoU per method") + "".join(parts[1:])

@@ -1,10 +1,10 @@
 """The confirmation protocol: freeze the configs in a commit, run fresh seeds once, pool them, test the claims.
 
-    python -m selfseg.leaderboards.confirm freeze --preset calibrated        # writes leaderboards/calibrated-freeze.json
-    python -m selfseg.leaderboards.confirm seeds --preset calibrated         # the fresh seeds, one per line
-    python -m selfseg.leaderboards.confirm check --preset calibrated         # may this checkout run them? (exit 2: no)
-    python -m selfseg.leaderboards.confirm board --preset calibrated --runs runs/confirm \\
-        --dev "seed 0=leaderboards/results/calibrated"                        # the section of leaderboards/calibrated.md
+    python -m selfseg.eval.confirm freeze --preset calibrated        # writes leaderboards/calibrated-freeze.json
+    python -m selfseg.eval.confirm seeds --preset calibrated         # the fresh seeds, one per line
+    python -m selfseg.eval.confirm check --preset calibrated         # may this checkout run them? (exit 2: no)
+    python -m selfseg.eval.confirm board --preset calibrated --runs runs/confirm \\
+        --dev "seed 0=leaderboards/results/calibrated"               # the section of leaderboards/calibrated.md
 
 **Freeze.** ``freeze`` records the clean HEAD as the freeze commit (its code and every ``configs/`` file's
 hash) in ``leaderboards/<preset>-freeze.json``, to be committed at once. The fresh seeds are derived from the
@@ -17,7 +17,8 @@ ran from such a commit or from a dirty tree.
 **Board.** Per-seed columns (development seeds marked, never pooled), the fresh seeds pooled over every test
 frame, and paired differences ``ours`` − each baseline and ablation with bootstrap 95 % CIs over the pooled
 test videos (:mod:`selfseg.eval.pooled`); a claim holds only when its CI excludes 0. Table II per seed too.
-The section sits between its own markers in ``leaderboards/<preset>.md``, so ``build`` leaves it alone.
+The section sits between its own markers in ``leaderboards/<preset>.md``, so the leaderboard builder
+(:mod:`selfseg.eval.leaderboard`) leaves it alone.
 """
 from __future__ import annotations
 
@@ -29,9 +30,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from selfseg.eval.aggregate import fmt
+from selfseg.eval.leaderboard import load_results, replace_generated
 from selfseg.eval.pooled import Seed, paired, pooled_videos, score
 from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
-from selfseg.leaderboards.build import load_results, replace_generated
 
 ROOT = Path(__file__).resolve().parents[1]
 FREEZE_JSON = "leaderboards/{preset}-freeze.json"  # the freeze record, committed right after the freeze commit
@@ -41,7 +42,7 @@ SEED_RESULTS_DIR = SEED_RUN_DIR + "/results"
 UNFROZEN = ("leaderboards", "docs", "README.md")
 DEVELOPMENT_SEEDS = frozenset({0, 1, 7, 11})  # used while choosing settings (1: the disjoint-object training set)
 N_SEEDS = 3
-BEGIN = "<!-- BEGIN CONFIRMATION (selfseg.leaderboards.confirm; edits inside are overwritten) -->"
+BEGIN = "<!-- BEGIN CONFIRMATION (selfseg.eval.confirm; edits inside are overwritten) -->"
 END = "<!-- END CONFIRMATION -->"
 # The protocol's rows, in the order shown; ``ours`` − each of the others is a claim.
 BASELINES = ("supervised", "depth-clustering", "lccp-frame", "sdmaskrcnn-sim", "uois-sim", "fg-components")
@@ -225,7 +226,7 @@ def _dev_arg(text: str) -> tuple[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m selfseg.leaderboards.confirm", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m selfseg.eval.confirm", description=__doc__.splitlines()[0])
     p.add_argument("command", choices=("freeze", "seeds", "check", "board"))
     p.add_argument("--preset", default="calibrated")
     p.add_argument("--n-seeds", type=int, default=N_SEEDS, help="freeze: how many fresh seeds")

@@ -1,8 +1,8 @@
 """Diagnostic, not a test: what graph matching finds with φ1 trained under named config variants.
 
-    .venv/bin/python bench/bench_matching_levers.py --data DIR --config configs/ours-calibrated.yaml
+    .venv/bin/python experiments/bench_matching_levers.py --data DIR --config configs/ours-calibrated.yaml
         --variant NAME:key=value,key=value ... [--set KEY=VALUE ...] [--out runs/matching-levers]
-        [--json bench/results/matching_levers.json]
+        [--json experiments/results/matching_levers.json]
 
 Each variant runs ``evaluate3d --data DIR --config CONFIG --set stage_dir=OUT/_stages --set ... --rows
 lccp+symseg,ours-matching --out OUT/NAME`` (the real CLI, in its own process; the variants share the
@@ -10,7 +10,7 @@ reconstruction and over-segmentation stages, and a φ1 trained with the same set
 records back: Table II's LCCP + SymSeg and after-matching rows, how many component pairs the pre-filter
 dropped, the merges with their ground-truth precision and recall, and φ1's cosine between segments of the
 same object and of different objects in different scenes. Variants are given as in
-``bench/levers.py`` (``NAME:a=1,b.c=[2,3]``). Run it on a development dataset, never on the
+``experiments/common.py`` (``NAME:a=1,b.c=[2,3]``). Run it on a development dataset, never on the
 seed-0 test data. The JSON keeps the rows of earlier calls (keyed by dataset and variant) and replaces
 those run again.
 """
@@ -20,10 +20,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from levers import parse_inputs, run_variant_command, save_rows
+from common import parse_inputs, run_variant_command, save_rows
 
 from selfseg.dataset import Dataset
-from selfseg.eval.protocol import SCORES_JSON, results_key
+from selfseg.eval.layout import SCORES_JSON, results_key
 from selfseg.fileio import read_json
 
 ROWS = ("lccp+symseg", "ours-matching")
@@ -60,14 +60,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override for every variant")
     p.add_argument("--out", default="runs/matching-levers", help="evaluate3d's results folders (one per variant)")
-    p.add_argument("--json", default="bench/results/matching_levers.json")
+    p.add_argument("--json", default="experiments/results/matching_levers.json")
     args = p.parse_args(argv)
     variants = parse_inputs("bench_matching_levers", args.variant, args.data)
     if variants is None:
         return 2
     rows = [run_variant(args, name, sets) for name, sets in variants]
     save_rows(args.json, rows, lambda r: (r["dataset_hash"], r["variant"]),
-              "graph matching under φ1 config variants through evaluate3d (bench/bench_matching_levers.py)")
+              "graph matching under φ1 config variants through evaluate3d (experiments/bench_matching_levers.py)")
     print(f"{'variant':<16} {'symseg IoU':>10} {'matched IoU':>11} {'prefilt':>8} {'merges':>6} {'w.P':>5} "
           f"{'w.R':>5} {'x.R':>5} {'cos same med/q75':>17} {'cos diff med/q75':>17} {'wall s':>7}")
     for r in rows:

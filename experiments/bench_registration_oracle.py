@@ -2,8 +2,8 @@
 because the matched segments do not cover the same surface? Each fold's registered matches, scored again
 under the ground-truth transform.
 
-    .venv/bin/python bench/bench_registration_oracle.py --data runs/dev7/data --config configs/ours-calibrated.yaml
-        --results runs/dev7/levers-ours --run ours@c3t2 [--folds 0,1,2] [--restarts 5] [--json bench/results/registration_oracle.json]
+    .venv/bin/python experiments/bench_registration_oracle.py --data runs/dev7/data --config configs/ours-calibrated.yaml
+        --results runs/dev7/levers-ours --run ours@c3t2 [--folds 0,1,2] [--restarts 5] [--json experiments/results/registration_oracle.json]
 
 For every match pruning registered (``matches.json`` of each fold's pseudo stage under
 RESULTS/work/<run>/<dataset>/fold<k>/), each node pair is labelled by ground truth: *same object* when the
@@ -28,7 +28,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from bench_fold_merges import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
+from common import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -121,7 +121,7 @@ def fold_rows(fold_dir: Path, seg, gt_inst, aligned, dataset: Dataset, config: O
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = fold_bench_parser(__doc__, "bench/results/registration_oracle.json")
+    p = fold_bench_parser(__doc__, "experiments/results/registration_oracle.json")
     p.add_argument("--restarts", type=int, default=0, help="also register each match from this many RANSAC seeds")
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
@@ -139,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{c['same_object_misaligned']:>10} {c['same_object_no_overlap']:>10} {r['wrong_matches']:>6} "
                   f"{c['wrong_pass']:>10} {c.get('same_object_pass_restarts', '–'):>22} / "
                   f"{c.get('wrong_pass_restarts', '–')}")
-    save(args.json, "registered matches under the found and the true transform (bench/bench_registration_oracle.py)",
+    save(args.json,
+         "registered matches under the found and the true transform (experiments/bench_registration_oracle.py)",
          args.data, dataset, args.config, rows)
     return 0
 

@@ -1,0 +1,69 @@
+"""Where a result came from: the code (commit, dirty tree), the package versions, the machine, and the fields every
+result record starts with (:func:`provenance`). The benchmarks record the same (``bench/common.py``)."""
+from __future__ import annotations
+
+import datetime
+import functools
+import importlib.metadata
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+from selfseg.config import config_hash, to_dict
+from selfseg.dataset import FORMAT_VERSION, Dataset
+from selfseg.eval.layout import SCHEMA_VERSION
+
+VERSIONED_PACKAGES = ("selfseg", "numpy", "scipy", "torch", "open3d-cpu", "opencv-python-headless", "trimesh")
+
+
+@functools.cache
+def git_info() -> dict:
+    """Commit of the selfseg checkout and whether tracked files differ from it, as this process first saw them
+    (the code it loaded): the run functions ask before any work, so a commit made while a run trains does not
+    relabel its results."""
+    repo = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip() != ""
+        return {"commit": commit, "dirty": dirty}
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+
+
+def package_versions() -> dict:
+    out = {}
+    for pkg in VERSIONED_PACKAGES:
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def machine() -> dict:
+    """The machine a measurement runs on, now: CPU model, logical CPUs, load average (1, 5, 15 min; the cores
+    may be shared), Python and platform."""
+    return {"cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+            "load_average": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version(),
+            "platform": platform.platform()}
+
+
+def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> dict:
+    """The fields every result record starts with: schema, task ("2d" or "3d"), method, config, dataset, code."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "task": task,
+        "name": name,
+        "method": method,
+        "config": to_dict(config),
+        "config_hash": config_hash(config),
+        "dataset": {"name": dataset.name, "root": str(dataset.root.resolve()),
+                    "format_version": dataset.info.get("format_version", FORMAT_VERSION),
+                    "content_hash": dataset.content_hash(), "n_videos": len(dataset.video_ids)},
+        "git": dict(git_info()),
+        "versions": package_versions(),
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
