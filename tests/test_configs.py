@@ -34,6 +34,6 @@ def test_config_loads(path):
 
 def test_unknown_key_rejected(tmp_path):
     bad = tmp_path / "supervised-typo.yaml"
-    bad.write_text((CONFIG_DIR / "supervised-calibrated.yaml").read_text().replace("output_stride", "outptu_stride"))
-    with pytest.raises(ConfigError, match="outptu_stride"):
+    bad.write_text((CONFIG_DIR / "supervised-calibrated.yaml").read_text().replace("image_size", "imgae_size"))
+    with pytest.raises(ConfigError, match="imgae_size"):
         load_config(get_method_class("supervised").config_cls, bad)
