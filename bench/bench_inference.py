@@ -1,16 +1,22 @@
-"""Inference speed (network + clustering, time split) and training throughput on the CPU.
+"""Inference speed (network + clustering, time split) and training throughput, on the CPU or a GPU.
 
-    .venv/bin/python bench/bench_inference.py [--threads 2] [--repeats 5] [--out bench/results/inference.json]
+    .venv/bin/python bench/bench_inference.py [--device cpu|cuda|auto] [--threads 2] [--repeats 5] [--batch 16]
+        [--before PATH] [--out bench/results/inference.json]
 
 For each network preset and resolution it times the embedding network on a synthetic tabletop
 frame (8 flat-coloured objects, ~35 % foreground) as the methods run it (resized to the training
-scale ``TrainConfig.image_size``, embeddings resized back; native-size time also reported), and
-the clustering at full resolution (vMF mean-shift + components) on that frame's foreground with
-per-object embeddings plus noise, i.e. what a trained network gives; an untrained network's
-embeddings would make clustering time meaningless. Reports the
-fastest wall and CPU time of several runs, since the cores may be shared (load average recorded).
-Training throughput is images/s of full training steps (batch, crop and augmentation of the
-default TrainConfig). Paper figure: about 6 fps.
+scale ``TrainConfig.image_size``, embeddings resized back; native-size time also reported), alone and
+in batches of ``--batch`` frames (seconds per frame), and the clustering at full resolution (vMF
+mean-shift + components) on that frame's foreground with per-object embeddings plus noise, i.e. what
+a trained network gives; an untrained network's embeddings would make clustering time meaningless.
+The clustering is timed on numpy arrays (the CPU path, the project's reference results) and on
+tensors on ``--device`` (the torch path, one frame and ``--batch`` frames of different objects in one
+batch), with the host-side connected-component part on its own. ``fps`` is one frame end to end with
+the clustering the methods use on that device (numpy on the CPU, torch on a GPU); ``fps_numpy`` and
+``fps_torch`` with each. Reports the fastest wall and CPU time of several runs, since the cores may be
+shared (load average recorded). Training throughput is full training steps (batch, crop and
+augmentation of the default TrainConfig) on the device, also as minutes per 800 steps. Paper figure:
+about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
 """
 from __future__ import annotations
 
@@ -25,11 +31,11 @@ import numpy as np
 import torch
 
 from selfseg.config import to_dict
-from selfseg.fileio import write_json
+from selfseg.fileio import read_json, write_json
 from selfseg.method.features import embed_frames
-from selfseg.method.meanshift import MeanShiftConfig, cluster_frame
+from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
-from selfseg.method.train import TrainConfig, step_loss
+from selfseg.method.train import TrainConfig, resolve_device, step_loss
 
 SIZES = ((320, 240), (640, 480))
 
@@ -56,88 +62,137 @@ def object_embeddings(inst: np.ndarray, dim: int, noise: float = 0.15, seed: int
     return (emb / np.linalg.norm(emb, axis=-1, keepdims=True)).astype(np.float32).transpose(2, 0, 1)
 
 
-def best_time(fn, repeats: int) -> tuple[float, float]:
-    """(fastest wall time, fastest process CPU time) of ``repeats`` calls after a warm-up, in seconds.
+def best_time(fn, repeats: int, device: torch.device) -> tuple[float, float]:
+    """(fastest wall time, fastest process CPU time) of ``repeats`` calls after a warm-up, in seconds; on a GPU
+    each call is timed to the end of its kernels.
 
     The CPU is shared: the minimum wall time is the closest to an unloaded machine's, and CPU time
     (all threads) is nearly independent of the load.
     """
-    fn()
+    def call():
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    call()
     wall, cpu = [], []
     for _ in range(repeats):
         t, c = time.perf_counter(), time.process_time()
-        fn()
+        call()
         wall.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
     return float(np.min(wall)), float(np.min(cpu))
 
 
-def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size: int, repeats: int) -> dict:
+def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size: int, repeats: int, batch: int,
+                    device: torch.device) -> dict:
     """Per resolution: the method's pipeline (network at the training scale ``image_size``, embeddings
-    resized to the frame, clustering at full resolution) and, for reference, the network at native size."""
+    resized to the frame, clustering at full resolution), its parts, and the network at native size."""
     torch.manual_seed(0)
-    net = EmbeddingNet(net_cfg).eval()
+    net = EmbeddingNet(net_cfg).to(device).eval()
     out = {}
     for w, h in SIZES:
-        rgb, inst = synthetic_frame(w, h)
-        emb, fg = object_embeddings(inst, net_cfg.embed_dim), inst > 0
-        (t_net, c_net) = best_time(lambda: embed_frames(net, [rgb], "cpu", image_size), repeats)
-        (t_native, _) = best_time(lambda: embed_frames(net, [rgb], "cpu"), repeats)
-        (t_cluster, c_cluster) = best_time(lambda: cluster_frame(emb, fg, cluster_cfg), repeats)
-        pred = cluster_frame(emb, fg, cluster_cfg)
-        out[f"{w}x{h}"] = {"network_s": round(t_net, 4), "clustering_s": round(t_cluster, 4),
-                           "total_s": round(t_net + t_cluster, 4), "fps": round(1.0 / (t_net + t_cluster), 2),
-                           "network_cpu_s": round(c_net, 4), "clustering_cpu_s": round(c_cluster, 4),
-                           "network_native_resolution_s": round(t_native, 4), "fg_pixels": int(fg.sum()),
-                           "objects": int(inst.max()), "instances_found": int(len(np.unique(pred[pred > 0])))}
-        print(f"  {w}x{h}: network {t_net * 1000:.0f} ms (at {image_size} px; {t_native * 1000:.0f} ms at native size)"
-              f" + clustering {t_cluster * 1000:.0f} ms = {1.0 / (t_net + t_cluster):.2f} fps "
+        frames = [synthetic_frame(w, h, seed=i) for i in range(batch)]
+        rgb, inst = frames[0]
+        embs = [object_embeddings(f[1], net_cfg.embed_dim, seed=i) for i, f in enumerate(frames)]
+        masks = [f[1] > 0 for f in frames]
+        emb, fg = embs[0], masks[0]
+        emb_dev, embs_dev = torch.from_numpy(emb).to(device), torch.from_numpy(np.stack(embs)).to(device)
+        t_net, c_net = best_time(lambda: embed_frames(net, [rgb], device, image_size), repeats, device)
+        t_native, _ = best_time(lambda: embed_frames(net, [rgb], device), repeats, device)
+        t_batch, _ = best_time(lambda: embed_frames(net, [f[0] for f in frames], device, image_size), repeats, device)
+        t_numpy, c_numpy = best_time(lambda: cluster_frame(emb, fg, cluster_cfg), repeats, device)
+        t_torch, _ = best_time(lambda: cluster_frame(emb_dev, fg, cluster_cfg), repeats, device)
+        t_torch_batch, _ = best_time(lambda: cluster_frames(embs_dev, masks, cluster_cfg), repeats, device)
+        t_components, _ = best_time(lambda: absorb_small(split_components(inst, cluster_cfg.connectivity),
+                                                         cluster_cfg.min_component_px), repeats, device)
+        pred, pred_torch = cluster_frame(emb, fg, cluster_cfg), cluster_frame(emb_dev, fg, cluster_cfg)
+        t_cluster = t_numpy if device.type == "cpu" else t_torch
+        row = {"network_s": t_net, "clustering_s": t_cluster, "total_s": t_net + t_cluster,
+               "fps": 1 / (t_net + t_cluster),
+               "network_cpu_s": c_net, "clustering_cpu_s": c_numpy, "network_native_resolution_s": t_native,
+               "network_batched_s_per_frame": t_batch / batch, "clustering_numpy_s": t_numpy,
+               "clustering_torch_s": t_torch, "clustering_torch_batched_s_per_frame": t_torch_batch / batch,
+               "components_s": t_components, "clustering_share": t_cluster / (t_net + t_cluster),
+               "fps_numpy": 1 / (t_net + t_numpy), "fps_torch": 1 / (t_net + t_torch)}
+        rounded = {k: round(v, 5 if k.endswith(("_s", "_frame")) else 3) for k, v in row.items()}
+        out[f"{w}x{h}"] = rounded | {
+            "fg_pixels": int(fg.sum()), "objects": int(inst.max()),
+            "instances_found": int(len(np.unique(pred[pred > 0]))),
+            "torch_labels_equal_numpy": bool(np.array_equal(pred, pred_torch))}
+        print(f"  {w}x{h}: network {t_net * 1000:.1f} ms (at {image_size} px; {t_native * 1000:.0f} ms at native size; "
+              f"{t_batch / batch * 1000:.1f} ms/frame in batches of {batch}) + clustering numpy {t_numpy * 1000:.1f} / "
+              f"torch {t_torch * 1000:.1f} ms (batched {t_torch_batch / batch * 1000:.1f} ms/frame; components "
+              f"{t_components * 1000:.1f} ms) = {1 / (t_net + t_cluster):.2f} fps "
               f"({out[f'{w}x{h}']['instances_found']} instances of {inst.max()}); CPU time "
-              f"{c_net * 1000:.0f} + {c_cluster * 1000:.0f} ms", flush=True)
+              f"{c_net * 1000:.0f} + {c_numpy * 1000:.0f} ms", flush=True)
     return out
 
 
-def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int) -> dict:
+def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device) -> dict:
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
     torch.manual_seed(0)
-    net = EmbeddingNet(net_cfg)
+    net = EmbeddingNet(net_cfg).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=train_cfg.lr)
 
     def step(i: int = 0):
-        loss = step_loss(net, source, train_cfg, i, torch.device("cpu"))
+        loss = step_loss(net, source, train_cfg, i, device)
         opt.zero_grad()
         loss.backward()
         opt.step()
 
-    t, c = best_time(step, steps)
+    t, c = best_time(step, steps, device)
     return {"batch_size": train_cfg.batch_size, "crop": list(train_cfg.crop), "step_s": round(t, 3),
-            "step_cpu_s": round(c, 3), "images_per_s": round(train_cfg.batch_size / t, 2)}
+            "step_cpu_s": round(c, 3), "images_per_s": round(train_cfg.batch_size / t, 2),
+            "steps_per_s": round(1 / t, 3), "minutes_per_800_steps": round(800 * t / 60, 2)}
+
+
+def device_name(device: torch.device) -> str:
+    """The GPU's name, or the CPU model (Linux), else what ``platform`` reports."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    cpuinfo = Path("/proc/cpuinfo")
+    models = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
+              if ln.startswith("model name")] if cpuinfo.is_file() else []
+    return models[0] if models else platform.processor() or platform.machine()
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
+                    help="where the network, the torch clustering and training run (auto: cuda if available)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3)
+    ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "inference.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
     cluster_cfg = MeanShiftConfig()
     train_cfg = TrainConfig()
-    results = {"threads": args.threads, "cpu": platform.processor() or platform.machine(),
-               "load_average_at_start": list(os.getloadavg()), "torch": torch.__version__,
+    results = {"device": str(device), "device_name": device_name(device), "threads": args.threads,
+               "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS") if k in os.environ},
+               "cpu_count": os.cpu_count(), "cpu": platform.processor() or platform.machine(),
+               "load_average_at_start": list(os.getloadavg()), "torch": torch.__version__, "numpy": np.__version__,
+               "repeats": args.repeats, "batch": args.batch,
                "cluster_config": to_dict(cluster_cfg), "train_config": to_dict(train_cfg), "nets": {}}
     for name in ("default", "fast"):
         net_cfg = NetConfig.preset(name)
         print(f"net {name}: {to_dict(net_cfg)}", flush=True)
         entry = {"net_config": to_dict(net_cfg),
-                 "inference": bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats)}
-        entry["training"] = bench_training(net_cfg, train_cfg, args.train_steps)
-        print(f"  training: {entry['training']['images_per_s']} images/s "
+                 "inference": bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats, args.batch,
+                                              device)}
+        entry["training"] = bench_training(net_cfg, train_cfg, args.train_steps, device)
+        print(f"  training: {entry['training']['images_per_s']} images/s, "
+              f"{entry['training']['minutes_per_800_steps']} min per 800 steps "
               f"(batch {train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
         results["nets"][name] = entry
     results["load_average_at_end"] = list(os.getloadavg())
+    if args.before is not None:
+        results["before"] = read_json(args.before)
     write_json(args.out, results)
     print(f"wrote {args.out}")
 

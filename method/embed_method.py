@@ -2,7 +2,10 @@
 
 ``fit`` builds a label source (the subclass decides from what), trains the network into a folder
 of ``workdir`` keyed by the settings and the training frames, and ``segment`` runs the network on
-the frame and clusters the foreground pixels (:func:`selfseg.method.meanshift.cluster_frame`).
+the frame and clusters the foreground pixels (:func:`selfseg.method.meanshift.cluster_frame`). On
+the CPU the clustering is numpy's, frame by frame (the reference results); on a GPU the embeddings
+stay on it, the mode finding runs there, and ``segment_video`` embeds and clusters ``GPU_BATCH``
+frames at a time.
 """
 from __future__ import annotations
 
@@ -12,17 +15,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from selfseg.config import to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import hash_json
 from selfseg.manifest import video_content_hash
-from selfseg.method.meanshift import MeanShiftConfig, cluster_frame
+from selfseg.method.meanshift import MeanShiftConfig, cluster_frame, cluster_frames
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
 from selfseg.method_api import Method
 
 NET_DIR = "net-{key_hash}"  # in the workdir: the network's training run (files: selfseg.method.train)
+GPU_BATCH = 16  # frames per network + clustering batch in segment_video, off the CPU
 
 
 @dataclass
@@ -86,19 +91,38 @@ class EmbeddingMethodBase(Method):
         ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it; with
         ``train.mask_background``, on the frame with everything outside ``fg_mask`` masked out; with ``test_flip``,
         averaged with the mirror image's embeddings)."""
+        return self._embed([rgb], None if fg_mask is None else [fg_mask])[0].cpu().numpy()
+
+    def _embed(self, rgbs: list[np.ndarray], fg_masks: list[np.ndarray] | None) -> torch.Tensor:
+        """B×D×H×W float32 embeddings of same-size frames, on the method's device (as :meth:`embed`)."""
         from selfseg.method.features import embed_frames, foreground_box
 
         if self._net is None:
             raise RuntimeError(f"method {self.name!r} has no trained network: call fit() or load() first")
         train = self.network_train_config()
-        boxes = None if train.crop_margin is None or fg_mask is None else [foreground_box(fg_mask, train.crop_margin)]
-        masks = [fg_mask] if train.mask_background and fg_mask is not None else None
-        return embed_frames(self._net, [rgb], self._device, train.image_size, boxes, masks,
-                            self.config.test_flip)[0].float().cpu().numpy()
+        boxes = None if train.crop_margin is None or fg_masks is None else \
+            [foreground_box(m, train.crop_margin) for m in fg_masks]
+        masks = fg_masks if train.mask_background else None
+        return embed_frames(self._net, rgbs, self._device, train.image_size, boxes, masks,
+                            self.config.test_flip).float()
 
     def network_train_config(self) -> TrainConfig:
         """The training settings of the network that segments (its scale and foreground crop)."""
         return self.config.train
 
     def segment(self, video: Video, frame_id: int, fg_mask: np.ndarray) -> np.ndarray:
-        return cluster_frame(self.embed(video.rgb(frame_id), fg_mask), fg_mask, self.config.cluster)
+        emb = self._embed([video.rgb(frame_id)], [fg_mask])[0]
+        return cluster_frame(emb.cpu().numpy() if self._device.type == "cpu" else emb, fg_mask, self.config.cluster)
+
+    def segment_video(self, video: Video, frame_ids: list[int],
+                      fg_masks: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """As :meth:`segment` per frame; off the CPU, ``GPU_BATCH`` frames share one network and clustering batch."""
+        if self._device.type == "cpu":
+            return super().segment_video(video, frame_ids, fg_masks)
+        out = {}
+        for start in range(0, len(frame_ids), GPU_BATCH):
+            fids = frame_ids[start:start + GPU_BATCH]
+            masks = [fg_masks[f] for f in fids]
+            embs = self._embed([video.rgb(f) for f in fids], masks)
+            out.update(zip(fids, cluster_frames(embs, masks, self.config.cluster)))
+        return out

@@ -10,13 +10,26 @@ so modes move jointly in embedding space (renormalised weighted mean) and in the
 only if their embeddings have cosine ≥ ``merge_threshold`` *and* they lie within ``merge_xy``
 of each other, so identical-looking objects far apart stay separate. ``spatial_sigma = 0``
 gives the plain vMF mean-shift (embedding only). The number of clusters is never given.
+
+Devices: the mode finding (farthest-point seeds, mean-shift iterations, every pixel's nearest mode,
+cluster ranking) is written once against numpy's array functions and runs on numpy arrays or on torch
+tensors of any device (:func:`_namespace`), in float32 either way; :func:`cluster_frame` picks by the
+type of its embeddings. numpy arrays give the project's reference results; a tensor on the CPU gives the
+same labels on the test fixtures (float rounding differs, so a pixel equidistant between two modes may
+differ). :func:`cluster_frames` runs the mode finding of several frames in one batch on the tensors'
+device (frames padded to the largest, padding weighs zero). Merging the few dozen modes of a frame, the
+connected-component split and small-part absorption run on the host (cv2/numpy): about 2 ms of a
+320×240 frame and 8–12 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import torch
 
 
 @dataclass
@@ -46,67 +59,93 @@ class MeanShiftConfig:
             raise ValueError(f"connectivity must be 4 or 8, got {self.connectivity}")
 
 
-def _log_kernel(z: np.ndarray, x: np.ndarray | None, mu: np.ndarray, p: np.ndarray | None, kappa: float,
-                sigma: float) -> np.ndarray:
-    """log K between points (N×D, N×2) and modes (S×D, S×2) → N×S."""
-    out = kappa * (z @ mu.T - 1.0)
+def _namespace(a):
+    """The array functions for ``a``: numpy itself, or the same names and arguments on ``a``'s torch device."""
+    if not isinstance(a, torch.Tensor):
+        return np
+    return SimpleNamespace(
+        float32=torch.float32, inf=math.inf, linalg=torch.linalg, abs=torch.abs, amax=torch.amax,
+        argmax=torch.argmax, bincount=torch.bincount, exp=torch.exp, minimum=torch.minimum,
+        maximum=torch.clamp_min, ones_like=torch.ones_like, stack=torch.stack, where=torch.where,
+        zeros_like=torch.zeros_like,
+        asarray=lambda x, dtype=None: torch.as_tensor(x, dtype=dtype, device=a.device),
+        zeros=lambda shape, dtype: torch.zeros(shape, dtype=dtype, device=a.device),
+        argsort=lambda x, axis=-1, kind="stable": torch.argsort(x, dim=axis, stable=True))
+
+
+def _asnumpy(a) -> np.ndarray:
+    """``a`` as a numpy array on the host (numpy arrays and None pass through)."""
+    return a.cpu().numpy() if isinstance(a, torch.Tensor) else a
+
+
+def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp):
+    """log K between points (B×N×D, B×N×2) and modes (B×S×D, B×S×2) → B×N×S."""
+    out = kappa * (z @ mu.swapaxes(-1, -2) - 1.0)
     if sigma > 0:
-        d2 = (x * x).sum(1)[:, None] + (p * p).sum(1)[None, :] - 2.0 * x @ p.T
-        out -= np.maximum(d2, 0.0) / (2.0 * sigma * sigma)
+        d2 = (x * x).sum(-1)[..., :, None] + (p * p).sum(-1)[..., None, :] - 2.0 * x @ p.swapaxes(-1, -2)
+        out -= xp.maximum(d2, 0.0) / (2.0 * sigma * sigma)
     return out
 
 
-def _farthest_points(z: np.ndarray, x: np.ndarray | None, n: int, kappa: float, sigma: float) -> np.ndarray:
-    """Indices of ``n`` farthest-point seeds under the distance −log K, starting from point 0."""
-    idx = [0]
-    dist = -_log_kernel(z, x, z[:1], None if x is None else x[:1], kappa, sigma)[:, 0]
-    for _ in range(1, min(n, len(z))):
-        i = int(np.argmax(dist))
-        if dist[i] <= 0:
-            break  # every remaining point coincides with a seed
-        idx.append(i)
-        dist = np.minimum(dist, -_log_kernel(z, x, z[i:i + 1], None if x is None else x[i:i + 1], kappa, sigma)[:, 0])
-    return np.asarray(idx)
+def _kernel(z, x, mu, p, pad, kappa: float, sigma: float, xp):
+    """K = exp(log K) → B×N×S, zero at padded points (``pad``: B×N×1 bool, False at padding; None: none)."""
+    w = xp.exp(_log_kernel(z, x, mu, p, kappa, sigma, xp))
+    return w if pad is None else w * pad
 
 
-def vmf_meanshift(emb: np.ndarray, xy: np.ndarray | None, cfg: MeanShiftConfig) -> np.ndarray:
-    """Cluster unit embeddings (N×D) with optional positions (N×2, normalised) → labels N int64 in [0, k).
+def _farthest_points(z, x, valid, n: int, kappa: float, sigma: float, xp):
+    """Up to ``n`` farthest-point seeds per frame under the distance −log K, starting from each frame's point 0.
 
-    ``xy`` is required when ``cfg.spatial_sigma > 0`` and ignored otherwise. Labels are ordered by
-    cluster size (0 = largest).
+    z: B×N×D, x: B×N×2 or None, valid: B×N bool (False: padding). Returns (indices B×S, taken B×S bool): a frame
+    takes no more seeds once every remaining point coincides with a seed, or all its points are seeds. Both
+    conditions persist (distances only shrink), so a frame's taken seeds come first; the loop runs on without
+    reading its results back (no device synchronisation).
     """
-    z = np.asarray(emb, dtype=np.float32)
-    n = len(z)
-    if n == 0:
-        return np.zeros(0, np.int64)
+    count = valid.sum(-1)
+    rows = xp.asarray(np.arange(len(z)))
+
+    def distance_to(i):  # B×N: −log K to each frame's point i
+        return -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa, sigma,
+                            xp)[..., 0]
+
+    seeds, taken = [xp.zeros_like(count)], [count > 0]
+    dist = xp.where(valid, distance_to(seeds[0]), -xp.inf)
+    for k in range(1, min(n, valid.shape[-1])):
+        i = xp.argmax(dist, axis=-1)
+        seeds.append(i)
+        taken.append((dist[rows, i] > 0) & (count > k))
+        dist = xp.minimum(dist, distance_to(i))
+    return xp.stack(seeds, axis=-1), xp.stack(taken, axis=-1)
+
+
+def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp):
+    """Mean-shift of every seed (B×S indices) over its frame's points → (modes B×S×D, positions B×S×2 or None).
+
+    ``pad`` as in :func:`_kernel`. A frame stops once its taken seeds move less than 1e-4 in one iteration
+    (embedding or position)."""
     sigma = float(cfg.spatial_sigma)
-    if sigma > 0:
-        if xy is None or np.shape(xy) != (n, 2):
-            raise ValueError(f"spatial_sigma > 0 needs xy of shape ({n}, 2), got {None if xy is None else np.shape(xy)}")
-        x = np.asarray(xy, dtype=np.float32)
-    else:
-        x = None
-    rng = np.random.default_rng(cfg.seed)
-    sub = np.sort(rng.choice(n, cfg.max_pixels, replace=False)) if n > cfg.max_pixels else np.arange(n)
-    zs, xs = z[sub], None if x is None else x[sub]
-
-    seeds = _farthest_points(zs, xs, cfg.n_seeds, cfg.kappa, sigma)
-    mu, p = zs[seeds].copy(), None if xs is None else xs[seeds].copy()
+    rows = xp.asarray(np.arange(len(z)))[:, None]
+    mu = z[rows, seeds]
+    p = None if x is None else x[rows, seeds]
+    moving = xp.ones_like(taken[:, 0])
     for _ in range(cfg.iters):
-        w = np.exp(_log_kernel(zs, xs, mu, p, cfg.kappa, sigma))  # N×S
-        m = w.T @ zs
-        new_mu = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
-        shift = np.abs(new_mu - mu).max()
-        mu = new_mu
-        if xs is not None:
-            new_p = (w.T @ xs) / np.maximum(w.sum(0), 1e-30)[:, None]
-            shift = max(shift, np.abs(new_p - p).max())
-            p = new_p
-        if shift < 1e-4:
+        w = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp)  # B×N×S
+        m = w.swapaxes(-1, -2) @ z
+        new_mu = m / xp.maximum(xp.linalg.norm(m, axis=-1, keepdims=True), 1e-12)
+        shift = xp.amax(xp.abs(new_mu - mu), axis=-1)
+        mu = xp.where(moving[:, None, None], new_mu, mu)
+        if p is not None:
+            new_p = (w.swapaxes(-1, -2) @ x) / xp.maximum(w.sum(-2), 1e-30)[..., None]
+            shift = xp.maximum(shift, xp.amax(xp.abs(new_p - p), axis=-1))
+            p = xp.where(moving[:, None, None], new_p, p)
+        moving = moving & (xp.amax(xp.where(taken, shift, 0.0), axis=-1) >= 1e-4)
+        if not moving.any():
             break
+    return mu, p
 
-    # Merge modes greedily, densest first.
-    density = np.exp(_log_kernel(zs, xs, mu, p, cfg.kappa, sigma)).sum(0)
+
+def _merge_modes(mu: np.ndarray, p: np.ndarray | None, density: np.ndarray, cfg: MeanShiftConfig) -> np.ndarray:
+    """Cluster id of each converged mode (S×D, S×2 or None, kernel density S): modes merge greedily, densest first."""
     group = np.full(len(mu), -1)
     kept: list[int] = []
     for s in np.argsort(-density, kind="stable"):
@@ -120,13 +159,81 @@ def vmf_meanshift(emb: np.ndarray, xy: np.ndarray | None, cfg: MeanShiftConfig) 
         else:
             group[s] = len(kept)
             kept.append(s)
+    return group
 
-    # Every pixel goes to its nearest converged mode, then to that mode's merged cluster.
-    labels = group[np.argmax(_log_kernel(z, x, mu, p, cfg.kappa, sigma), axis=1)]
-    order = np.argsort(-np.bincount(labels, minlength=len(kept)), kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return rank[labels].astype(np.int64)
+
+def _stack_padded(arrays: list, xp):
+    """B arrays of N_i rows → B×max(N_i)×… with zero rows after each array's (B = 1: a view)."""
+    if len(arrays) == 1:
+        return arrays[0][None]
+    out = xp.zeros((len(arrays), max(len(a) for a in arrays)) + tuple(arrays[0].shape[1:]), dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[i, :len(a)] = a
+    return out
+
+
+def _filled(lengths: list[int]) -> np.ndarray:
+    """B×max(lengths) bool: True on the first ``lengths[i]`` entries of row i (what :func:`_stack_padded` fills)."""
+    return np.arange(max(lengths)) < np.asarray(lengths)[:, None]
+
+
+def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp) -> list:
+    """Cluster several frames' points at once: ``zs`` N_i×D unit embeddings (float32, N_i ≥ 1), ``xs`` N_i×2
+    positions (None when ``cfg.spatial_sigma`` = 0), all numpy arrays or all tensors on one torch device.
+
+    Returns each frame's int64 labels in [0, k_i), ordered by cluster size (0 = largest), as the inputs' kind.
+    Mode finding runs on at most ``cfg.max_pixels`` points per frame; every point is then assigned.
+    """
+    sigma = float(cfg.spatial_sigma)
+    subs = [np.sort(np.random.default_rng(cfg.seed).choice(len(z), cfg.max_pixels, replace=False))
+            if len(z) > cfg.max_pixels else np.arange(len(z)) for z in zs]
+    lengths = [len(s) for s in subs]
+    valid = xp.asarray(_filled(lengths))
+    pad = None if min(lengths) == max(lengths) else valid[..., None]
+    z = _stack_padded([zf[xp.asarray(s)] for zf, s in zip(zs, subs)], xp)
+    x = None if xs is None else _stack_padded([xf[xp.asarray(s)] for xf, s in zip(xs, subs)], xp)
+    seeds, taken = _farthest_points(z, x, valid, cfg.n_seeds, cfg.kappa, sigma, xp)
+    mu, p = _shift_modes(z, x, pad, seeds, taken, cfg, xp)
+
+    # Merging (a few dozen modes per frame) runs on the host.
+    density = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp).sum(-2)
+    mu_h, p_h, density_h, taken_h = (_asnumpy(a) for a in (mu, p, density, taken))
+    groups = np.zeros(taken_h.shape, np.int64)
+    for f, t in enumerate(taken_h):
+        groups[f, t] = _merge_modes(mu_h[f][t], None if p_h is None else p_h[f][t], density_h[f][t], cfg)
+
+    # Every point goes to its nearest converged mode, then to that mode's merged cluster.
+    log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), mu, p, cfg.kappa, sigma,
+                        xp)
+    if not taken_h.all():
+        log_k = xp.where(xp.asarray(taken_h)[:, None, :], log_k, -xp.inf)
+    b, s = groups.shape
+    labels = xp.asarray(groups.ravel())[xp.argmax(log_k, axis=-1) + xp.asarray(np.arange(b)[:, None] * s)]  # B×M
+    # Clusters ranked by size per frame; frame f's cluster c is f·k + c below.
+    n_points, k = [len(z) for z in zs], int(groups.max()) + 1
+    flat = labels + xp.asarray(np.arange(b)[:, None] * k)
+    sizes = xp.bincount(flat[xp.asarray(_filled(n_points))], minlength=b * k).reshape(b, k)
+    rank = xp.argsort(xp.argsort(-sizes, axis=-1, kind="stable"), axis=-1, kind="stable")
+    labels = rank.reshape(-1)[flat]
+    return [labels[f, :n] for f, n in enumerate(n_points)]
+
+
+def vmf_meanshift(emb, xy, cfg: MeanShiftConfig):
+    """Cluster unit embeddings (N×D) with optional positions (N×2, normalised) → labels N int64 in [0, k).
+
+    ``emb``: a numpy array, or a torch tensor (clustered on its device, labels returned there). ``xy`` is
+    required when ``cfg.spatial_sigma > 0`` and ignored otherwise. Labels are ordered by cluster size (0 = largest).
+    """
+    xp = _namespace(emb)
+    z = xp.asarray(emb, dtype=xp.float32)
+    n = len(z)
+    if n == 0:
+        return xp.asarray(np.zeros(0, np.int64))
+    if cfg.spatial_sigma <= 0:
+        return _meanshift_frames([z], None, cfg, xp)[0]
+    if xy is None or tuple(np.shape(xy)) != (n, 2):
+        raise ValueError(f"spatial_sigma > 0 needs xy of shape ({n}, 2), got {None if xy is None else np.shape(xy)}")
+    return _meanshift_frames([z], [xp.asarray(xy, dtype=xp.float32)], cfg, xp)[0]
 
 
 def split_components(labels: np.ndarray, connectivity: int = 8) -> np.ndarray:
@@ -184,23 +291,42 @@ def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
     return compact[inst].astype(np.int32)
 
 
-def cluster_frame(emb: np.ndarray, fg_mask: np.ndarray, cfg: MeanShiftConfig) -> np.ndarray:
+def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig) -> list[np.ndarray]:
+    """Instance maps of frames whose D×H×W embeddings are all numpy arrays or all tensors on one torch device."""
+    xp = _namespace(embs[0] if embs else None)
+    out, pixels, zs, xs = [], [], [], []
+    for emb, fg in zip(embs, fg_masks):
+        emb = xp.asarray(emb, dtype=xp.float32)
+        fg = np.asarray(fg, dtype=bool)
+        if emb.ndim != 3 or tuple(emb.shape[1:]) != fg.shape:
+            raise ValueError(f"emb must be D×H×W matching fg_mask H×W, got {tuple(emb.shape)} and {fg.shape}")
+        out.append(np.zeros(fg.shape, np.int32))
+        vs, us = np.nonzero(fg)
+        if len(vs):
+            pixels.append((out[-1], vs, us))
+            zs.append(emb[:, xp.asarray(vs), xp.asarray(us)].T)
+            xs.append(xp.asarray(np.stack([us, vs], 1).astype(np.float32) / float(max(fg.shape))))
+    if zs:
+        labels = _meanshift_frames(zs, xs if cfg.spatial_sigma > 0 else None, cfg, xp)
+        for (o, vs, us), lab in zip(pixels, labels):
+            o[vs, us] = _asnumpy(lab) + 1
+    return [absorb_small(split_components(o, cfg.connectivity), cfg.min_component_px) for o in out]
+
+
+def cluster_frame(emb, fg_mask: np.ndarray, cfg: MeanShiftConfig) -> np.ndarray:
     """Instance map from per-pixel embeddings.
 
-    emb: D×H×W float (unit norm per pixel); fg_mask: H×W bool. Returns int32 H×W, 0 = background,
-    1..n = instances: mean-shift over the foreground pixels, each cluster split into its connected
-    components, components below ``min_component_px`` absorbed or dropped.
+    emb: D×H×W float (unit norm per pixel), a numpy array or a torch tensor (mode finding then runs on its
+    device); fg_mask: H×W bool. Returns int32 H×W, 0 = background, 1..n = instances: mean-shift over the
+    foreground pixels, each cluster split into its connected components, components below ``min_component_px``
+    absorbed or dropped.
     """
-    emb = np.asarray(emb, dtype=np.float32)
-    fg = np.asarray(fg_mask, dtype=bool)
-    if emb.ndim != 3 or emb.shape[1:] != fg.shape:
-        raise ValueError(f"emb must be D×H×W matching fg_mask H×W, got {emb.shape} and {fg.shape}")
-    h, w = fg.shape
-    vs, us = np.nonzero(fg)
-    out = np.zeros((h, w), np.int32)
-    if len(vs) == 0:
-        return out
-    xy = np.stack([us, vs], 1).astype(np.float32) / float(max(h, w))
-    labels = vmf_meanshift(emb[:, vs, us].T, xy, cfg)
-    out[vs, us] = labels + 1
-    return absorb_small(split_components(out, cfg.connectivity), cfg.min_component_px)
+    return _cluster([emb], [fg_mask], cfg)[0]
+
+
+def cluster_frames(embs, fg_masks: list[np.ndarray], cfg: MeanShiftConfig) -> list[np.ndarray]:
+    """:func:`cluster_frame` of B frames: ``embs`` B×D×H×W. A torch tensor's frames go through mode finding
+    together, in one batch on its device; numpy frames are clustered one by one."""
+    if isinstance(embs, torch.Tensor):
+        return _cluster(list(embs), list(fg_masks), cfg)
+    return [cluster_frame(e, m, cfg) for e, m in zip(embs, fg_masks)]
