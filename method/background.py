@@ -40,6 +40,60 @@ def up_hint_from_poses(T_world_cam: np.ndarray) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
+def _plane_distance(pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """|a·x + b·y + c·z + d| of each point (N×3, m) from ``plane`` (4, unit normal), elementwise (no BLAS, so the
+    same bits on any thread count)."""
+    return np.abs(pts[:, 0] * plane[0] + pts[:, 1] * plane[1] + pts[:, 2] * plane[2] + plane[3])
+
+
+def ransac_plane(pts: np.ndarray, threshold_m: float, iterations: int, rng: np.random.Generator,
+                 n_eval: int = 4096, n_best: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """The support plane of ``pts`` (N×3, m) by MSAC: ``iterations`` planes through three random points are scored
+    on ``n_eval`` random points, the ``n_best`` of them on every point, by the sum of squared distances capped at
+    ``threshold_m`` (so among planes with as many inliers the one closest to them wins); the winner is then
+    refitted by least squares to its inliers while that lowers the score. Returns (plane float64[4] with unit
+    normal, indices of the points within ``threshold_m`` of it, ascending).
+
+    Deterministic for a given ``rng`` state, whatever the thread count or load: Open3D's ``segment_plane``
+    stops early when one of its threads finds a good plane, so its answer (and all that follows) changed with
+    the scheduling.
+    """
+    n = len(pts)
+    if n < 3:
+        return np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(0, np.int64)
+    tri = pts[rng.integers(0, n, (iterations, 3))]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.sqrt((normal ** 2).sum(1))
+    ok = norm > 1e-12
+    if not ok.any():
+        return np.array([0.0, 0.0, 1.0, 0.0]), np.zeros(0, np.int64)
+    normal = normal[ok] / norm[ok, None]
+    planes = np.c_[normal, -(normal * tri[ok, 0]).sum(1)]
+    sample = pts[np.sort(rng.choice(n, min(n, n_eval), replace=False))]
+    dist = np.abs(sample[None, :, 0] * planes[:, 0, None] + sample[None, :, 1] * planes[:, 1, None]
+                  + sample[None, :, 2] * planes[:, 2, None] + planes[:, 3, None])
+    screen = (np.minimum(dist, threshold_m) ** 2).sum(1)
+
+    def cost(plane):
+        return float((np.minimum(_plane_distance(pts, plane), threshold_m) ** 2).sum())
+
+    best = min((planes[i] for i in np.argsort(screen, kind="stable")[:n_best]), key=cost)  # ties: the first
+    best_cost = cost(best)
+    for _ in range(3):  # least-squares refit: the normal is the inliers' direction of least spread
+        p = pts[_plane_distance(pts, best) < threshold_m]
+        if len(p) < 3:
+            break
+        c = p.mean(0)
+        q = p - c
+        normal = np.linalg.eigh(np.array([[(q[:, i] * q[:, j]).sum() for j in range(3)] for i in range(3)]))[1][:, 0]
+        refit = np.r_[normal, -(normal * c).sum()]
+        refit_cost = cost(refit)
+        if refit_cost >= best_cost:
+            break
+        best, best_cost = refit, refit_cost
+    return best.astype(np.float64), np.nonzero(_plane_distance(pts, best) < threshold_m)[0].astype(np.int64)
+
+
 def remove_support_plane(points_w: np.ndarray, normals_w: np.ndarray | None, cfg: BackgroundConfig,
                          up_hint: np.ndarray | None = None, where: str = "scene") -> tuple[np.ndarray, np.ndarray]:
     """Find the support plane and the object points standing on it.
@@ -61,7 +115,7 @@ def remove_support_plane(points_w: np.ndarray, normals_w: np.ndarray | None, cfg
     pts = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
     if len(pts) < cfg.min_plane_points:
         raise BackgroundError(f"{where}: only {len(pts)} points, fewer than min_plane_points={cfg.min_plane_points}")
-    o3d.utility.random.seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
     remaining = np.arange(len(pts))
     if normals_w is not None and up_hint is not None:
         up = up_hint / np.linalg.norm(up_hint)
@@ -71,13 +125,10 @@ def remove_support_plane(points_w: np.ndarray, normals_w: np.ndarray | None, cfg
     for _ in range(cfg.max_planes):
         if len(remaining) < cfg.min_plane_points:
             break
-        pcd = o3d.t.geometry.PointCloud(o3c.Tensor(pts[remaining]))
-        model, inliers = pcd.segment_plane(cfg.distance_threshold_m, 3, cfg.iterations)
-        model, inliers = model.numpy().astype(np.float64), inliers.numpy().astype(np.int64)
+        model, inliers = ransac_plane(pts[remaining], cfg.distance_threshold_m, cfg.iterations, rng)
         if len(inliers) < cfg.min_plane_points:
             tried.append(f"{len(inliers)} inliers")
             break
-        model /= np.linalg.norm(model[:3])
         if up_hint is not None:
             if model[:3] @ up_hint < 0:
                 model = -model

@@ -43,7 +43,7 @@ from selfseg.method.reconstruct import ReconConfig, Volume, occupancy, reconstru
 from selfseg.stages import STAGE_FILE, StageCache
 
 STAGE = "recon"
-CODE_VERSION = 1
+CODE_VERSION = 2
 
 # The stage's files, relative to its folder (contents: the module docstring).
 CLOUD_NPZ = "cloud.npz"  # object points after background removal: points_w (m), colors, normals_w; world frame
@@ -164,11 +164,17 @@ class ReconStage:
 
 
 def save_grid(vbg, path: Path) -> None:
-    """Write an open3d VoxelBlockGrid to ``path`` as its own ``save()`` arrays, zip-compressed."""
+    """Write an open3d VoxelBlockGrid to ``path`` as its own ``save()`` arrays, zip-compressed, blocks in
+    lexicographic order of their coordinates (the hash map's order depends on thread scheduling, so the same
+    grid would otherwise give different files)."""
     with tempfile.TemporaryDirectory(prefix="selfseg_tsdf_") as d:
         vbg.save(os.path.join(d, TSDF_NPZ))
         with np.load(os.path.join(d, TSDF_NPZ)) as z:
-            np.savez_compressed(path, **{k: z[k] for k in z.files})
+            arrays = {k: z[k] for k in z.files}
+    order = np.lexsort(arrays["key"].T[::-1])  # last key is primary: block x, then y, z
+    n = len(order)
+    np.savez_compressed(path, **{k: v[order] if k == "key" or (k.startswith("value_") and len(v) == n) else v
+                                 for k, v in arrays.items()})
 
 
 def load_grid(path: Path):
