@@ -94,7 +94,8 @@ evaluate() {  # evaluate METHOD ARGS...: one method under its own name
 stream_a() {  # the geometric baselines, the supervised bound, two ablations, then baselines B and D
   for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
   evaluate supervised --config "$SUP"
-  for m in ours-v3 ours-v4; do evaluate "$m" --config "$OURS"; done
+  [ "$CONFIRM" = 1 ] || evaluate ours-v3 --config "$OURS"  # in stream b under CONFIRM=1: there b has no PiCIE, STEGO
+  evaluate ours-v4 --config "$OURS"
   { { skipped v1-disjoint || kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT"; } &&
     kept uois-sim 3 uois-sim --set train_data="$DISJOINT" && kept sdmaskrcnn-sim 3 sdmaskrcnn-sim --set train_data="$DISJOINT"; } ||
     step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
@@ -108,6 +109,7 @@ stream_b() {  # ours (its φ1 is cached for V2), the matching step's ceiling, Ta
   # ours-gt-merging (a diagnostic that reads ground truth): φ2 as in ours on the over-segments merged by ground
   # truth, so ours-gt-merging − ours-v2 is the most a perfect matching and pruning step could add in Table I.
   for m in ours ours-v2 ours-gt-merging; do evaluate "$m" --config "$OURS"; done
+  [ "$CONFIRM" = 1 ] && evaluate ours-v3 --config "$OURS"  # evens out the two streams
   evaluate_as ours-paper-pruning ours --config "$OURS" "${PAPER_PRUNING[@]}"
   kept ours-matching 1 ours --config "$OURS" || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
   for m in picie stego; do evaluate "$m"; done
