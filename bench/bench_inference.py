@@ -20,9 +20,7 @@ about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before
 """
 from __future__ import annotations
 
-import argparse
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -30,8 +28,11 @@ import cv2
 import numpy as np
 import torch
 
+from common import bench_parser, write_result
+
 from selfseg.config import to_dict
-from selfseg.fileio import read_json, write_json
+from selfseg.eval.provenance import cpu_model
+from selfseg.fileio import read_json
 from selfseg.method.features import embed_frames
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
@@ -149,17 +150,12 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
 
 
 def device_name(device: torch.device) -> str:
-    """The GPU's name, or the CPU model (Linux), else what ``platform`` reports."""
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    cpuinfo = Path("/proc/cpuinfo")
-    models = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
-              if ln.startswith("model name")] if cpuinfo.is_file() else []
-    return models[0] if models else platform.processor() or platform.machine()
+    """The GPU's name, or the CPU model."""
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model()
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__, "inference.json")
     ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
                     help="where the network, the torch clustering and training run (auto: cuda if available)")
     ap.add_argument("--threads", type=int, default=2)
@@ -167,16 +163,14 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3)
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "inference.json")
     args = ap.parse_args()
+    load_at_start = os.getloadavg()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
     cluster_cfg = MeanShiftConfig()
     train_cfg = TrainConfig()
     results = {"device": str(device), "device_name": device_name(device), "threads": args.threads,
                "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS") if k in os.environ},
-               "cpu_count": os.cpu_count(), "cpu": platform.processor() or platform.machine(),
-               "load_average_at_start": list(os.getloadavg()), "torch": torch.__version__, "numpy": np.__version__,
                "repeats": args.repeats, "batch": args.batch,
                "cluster_config": to_dict(cluster_cfg), "train_config": to_dict(train_cfg), "nets": {}}
     for name in ("default", "fast"):
@@ -190,11 +184,9 @@ def main() -> None:
               f"{entry['training']['minutes_per_800_steps']} min per 800 steps "
               f"(batch {train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
         results["nets"][name] = entry
-    results["load_average_at_end"] = list(os.getloadavg())
     if args.before is not None:
         results["before"] = read_json(args.before)
-    write_json(args.out, results)
-    print(f"wrote {args.out}")
+    write_result(args.out, results, load_at_start)
 
 
 if __name__ == "__main__":

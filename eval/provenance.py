@@ -43,10 +43,18 @@ def package_versions() -> dict:
     return out
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux: /proc/cpuinfo), else what ``platform`` reports."""
+    cpuinfo = Path("/proc/cpuinfo")
+    models = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
+              if ln.startswith("model name")] if cpuinfo.is_file() else []
+    return models[0] if models else platform.processor() or platform.machine()
+
+
 def machine() -> dict:
     """The machine a measurement runs on, now: CPU model, logical CPUs, load average (1, 5, 15 min; the cores
     may be shared), Python and platform."""
-    return {"cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+    return {"cpu": cpu_model(), "cpu_count": os.cpu_count(),
             "load_average": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version(),
             "platform": platform.platform()}
 

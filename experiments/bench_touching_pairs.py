@@ -42,8 +42,8 @@ from selfseg.method.recon_stage import load_recon
 
 FRAME_STRIDE = 2
 CONTACT_M = 0.01  # points of an object within this of the other object are its contact region
-JOIN_SHARE = 0.5
-VARIANTS = ("gt_geometry", "gt_points_fitted_normals", "recon_points_gt_normals", "recon")  # a pair is joined when one segment holds this share of both objects' contact points
+JOIN_SHARE = 0.5  # a pair is joined when one segment holds this share of both objects' contact points
+VARIANTS = ("gt_geometry", "gt_points_fitted_normals", "recon_points_gt_normals", "recon")  # the clouds compared
 
 
 def gt_cloud(ds: Dataset, vid: str, voxel_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,9 +123,16 @@ def main(argv=None) -> int:
     p.add_argument("--stages", required=True, help="the stage folder holding recon/<video>")
     p.add_argument("--videos", default="")
     p.add_argument("--json", default="experiments/results/touching_pairs.json")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, as evaluate's (e.g. overseg.lccp.seed_resolution_m=0.02)")
+    p.add_argument("--variants", default=",".join(VARIANTS),
+                   help=f"clouds to segment, comma-separated (default all: {','.join(VARIANTS)})")
     args = p.parse_args(argv)
+    variants = args.variants.split(",")
+    if set(variants) - set(VARIANTS) or not {"gt_geometry", "recon"} <= set(variants):
+        p.error(f"--variants: gt_geometry and recon, and any of {', '.join(VARIANTS)}")
     ds = Dataset(args.data)
-    cfg = load_config(OursConfig, args.config)
+    cfg = load_config(OursConfig, args.config, args.overrides)
     vids = args.videos.split(",") if args.videos else ds.video_ids
     rows = []
     for vid in vids:
@@ -138,15 +145,18 @@ def main(argv=None) -> int:
         r_lab = lccp_segment(r_pts, r_nrm, rec.colors, cfg.overseg.lccp)
         g_pts, g_nrm, g_gt = gt_cloud(ds, vid, cfg.recon.voxel_size_m)
         g_lab = lccp_segment(g_pts, g_nrm, None, cfg.overseg.lccp)
+        clouds = {"recon": (r_lab, r_gt, r_pts), "gt_geometry": (g_lab, g_gt, g_pts)}
         # the two halves of the difference: GT points with fitted normals, reconstructed points with GT normals
         radius = 3 * cfg.recon.voxel_size_m
-        gp_lab = lccp_segment(g_pts, pca_normals(g_pts, g_nrm, radius), None, cfg.overseg.lccp)
-        rg_lab = lccp_segment(r_pts, mesh_normals(scene, r_pts, r_nrm), rec.colors, cfg.overseg.lccp)
+        if "gt_points_fitted_normals" in variants:
+            clouds["gt_points_fitted_normals"] = (
+                lccp_segment(g_pts, pca_normals(g_pts, g_nrm, radius), None, cfg.overseg.lccp), g_gt, g_pts)
+        if "recon_points_gt_normals" in variants:
+            clouds["recon_points_gt_normals"] = (
+                lccp_segment(r_pts, mesh_normals(scene, r_pts, r_nrm), rec.colors, cfg.overseg.lccp), r_gt, r_pts)
         for a, b in pairs:
             row = {"video": vid, "pair": [int(a), int(b)],
-                   "recon": joined(r_lab, r_gt, r_pts, a, b), "gt_geometry": joined(g_lab, g_gt, g_pts, a, b),
-                   "gt_points_fitted_normals": joined(gp_lab, g_gt, g_pts, a, b),
-                   "recon_points_gt_normals": joined(rg_lab, r_gt, r_pts, a, b)}
+                   **{k: joined(lab, gt, pts, a, b) for k, (lab, gt, pts) in clouds.items()}}
             rows.append(row)
             print(json.dumps(row), flush=True)
     both = [r for r in rows if r["recon"]["joined"] is not None and r["gt_geometry"]["joined"] is not None]
@@ -157,14 +167,14 @@ def main(argv=None) -> int:
     print(f"  separate on GT geometry, joined on the reconstruction: {tab[False, True]}  (the reconstruction's fault)")
     print(f"  joined on GT geometry, separate on the reconstruction: {tab[True, False]}")
     print(f"  joined on both (the shapes' convex contact): {tab[True, True]}")
-    for k in VARIANTS:
+    for k in variants:
         ok = [r[k]["joined"] for r in rows if r[k]["joined"] is not None]
         print(f"  {k}: joined {sum(ok)} of {len(ok)} ({100 * sum(ok) / max(len(ok), 1):.0f} %)")
-    joined_share = {k: [r[k]["joined"] for r in rows if r[k]["joined"] is not None] for k in VARIANTS}
+    joined_share = {k: [r[k]["joined"] for r in rows if r[k]["joined"] is not None] for k in variants}
     write_json(args.json, {"what": "LCCP on touching object pairs: ground-truth geometry against the reconstruction "
                                    "(experiments/bench_touching_pairs.py)",
                            "data": str(Path(args.data).resolve()), "dataset_hash": ds.content_hash(),
-                           "config": args.config, "machine": machine(), "n_pairs": len(rows),
+                           "config": args.config, "overrides": args.overrides, "machine": machine(), "n_pairs": len(rows),
                            "joined": {k: {"joined": sum(v), "comparable": len(v)} for k, v in joined_share.items()},
                            "gt_vs_recon": {f"gt_{'joined' if g else 'separate'}_recon_{'joined' if r else 'separate'}": v
                                            for (g, r), v in tab.items()},
