@@ -49,7 +49,9 @@ from selfseg.method.recon_stage import load_recon
 from selfseg.method.segment_graph import SegmentGraph
 from selfseg.poses import transform_points
 
-MAX_POINTS = 3000  # points drawn per cloud
+MAX_POINTS = 3000  # points drawn per scene cloud
+MATCH_POINTS = 800  # points drawn per side of a match
+MATCH_FIGURES = 20  # matches drawn per outcome (the first ones in matches.json); every match is listed
 MATCH_ROW = "ours-matching"  # the Table II row whose evaluate3d run the scenes and matches come from
 SCENE_ROWS = ("lccp", "lccp+symseg", "ours-matching", "gt-merging")  # Table II rows whose per-scene IoU is listed
 GREY = "#b4b4b4"  # points without a label, and unmatched points of a match
@@ -299,11 +301,24 @@ def scenes_section(scenes: list[SceneView], diagnostics: dict, groups: dict) -> 
             + f'<div id="scenes-view" class="view" data-initial="fig-scene-{scenes[0].video_id}"></div>' + "".join(figs))
 
 
-def matches_section(scenes: list[SceneView], matches: dict, diagnostics: dict, max_points: int) -> str:
-    """The matching and pruning counts of ``diagnostics.json``, a row per match with its outcome, the figures."""
+def drawn_matches(outcomes: list[str], per_outcome: int) -> list[bool]:
+    """Which matches get a figure: the first ``per_outcome`` of each outcome, in order."""
+    seen: dict[str, int] = {}
+    drawn = []
+    for o in outcomes:
+        seen[o] = seen.get(o, 0) + 1
+        drawn.append(seen[o] <= per_outcome)
+    return drawn
+
+
+def matches_section(scenes: list[SceneView], matches: dict, diagnostics: dict, match_points: int,
+                    match_figures: int) -> str:
+    """The matching and pruning counts of ``diagnostics.json``, a row per match with its outcome, and the figures
+    of the first ``match_figures`` matches of each outcome (``match_points`` points per side)."""
     by_id = {s.video_id: s for s in scenes}
     outcomes = [match_outcome(len(m["merged_edges"]), [p["reason"] for p in m["pairs"] if not p["accepted"]])
                 for m in matches["matches"]]
+    drawn = drawn_matches(outcomes, match_figures)
     rows, figs = [], []
     for n, (m, outcome) in enumerate(zip(matches["matches"], outcomes)):
         reg = m["registration"] or {}
@@ -312,12 +327,14 @@ def matches_section(scenes: list[SceneView], matches: dict, diagnostics: dict, m
         pairs = "<br>".join(f"{p['src']} → {p['tgt']}: {html.escape(p['reason'])}"
                             + ("" if p["precision"] is None else f" (P {fmt(p['precision'])}, R {fmt(p['recall'])})")
                             for p in m["pairs"])
-        rows.append([f'<span id="match-{n}"></span>' + _button("matches", f"fig-match-{n}", f"match {n}"),
+        label = _button("matches", f"fig-match-{n}", f"match {n}") if drawn[n] else f"match {n} (not drawn)"
+        rows.append([f'<span id="match-{n}"></span>' + label,
                      f"{m['src_scene']} / {m['src_comp']}", f"{m['tgt_scene']} / {m['tgt_comp']}",
                      fmt(m["J"]), fmt(m["T1"]), f"<b>{outcome}</b>" if outcome == "merged" else html.escape(outcome),
                      str(len(m["merged_edges"])), reg_text, pairs])
-        figs.append(_figure_json(match_figure(m, by_id[m["src_scene"]], by_id[m["tgt_scene"]], max_points),
-                                 f"fig-match-{n}"))
+        if drawn[n]:
+            figs.append(_figure_json(match_figure(m, by_id[m["src_scene"]], by_id[m["tgt_scene"]], match_points),
+                                     f"fig-match-{n}"))
     pr = diagnostics["pruning"]
     counts = _table(["", *pr["matches_by_outcome"]], [["matches (diagnostics.json)",
                                                        *map(str, pr["matches_by_outcome"].values())]])
@@ -330,12 +347,16 @@ def matches_section(scenes: list[SceneView], matches: dict, diagnostics: dict, m
            + counts + reasons)
     if not rows:
         return out + "<p>No non-empty match.</p>"
-    first = next((n for n, o in enumerate(outcomes) if o == "merged"), 0)
+    first = next((n for n, o in enumerate(outcomes) if o == "merged" and drawn[n]), 0)
+    cap = (f"<p>{sum(drawn)} of {len(drawn)} matches are drawn: the first {match_figures} of each outcome "
+           f"(<code>inspect --match-figures</code> draws more); the others are listed.</p>"
+           if not all(drawn) else "")
     head = ["match", "source scene / component", "target scene / component", "J", "T1", "outcome", "merged edges",
             "registration", "node pairs (source → target segment: decision, precision, recall)"]
     return (out + "<p>Each match: its source and target components, a colour per matched node pair (diamond: "
-            "accepted, x: rejected), other points grey.</p>" + _table(head, rows)
-            + f'<div id="matches-view" class="view" data-initial="fig-match-{first}"></div>' + "".join(figs))
+            "accepted, x: rejected), other points grey.</p>" + cap + _table(head, rows)
+            + (f'<div id="matches-view" class="view" data-initial="fig-match-{first}"></div>' if figs else "")
+            + "".join(figs))
 
 
 def leaderboard_section(groups: dict, results: Path, dataset: str) -> str:
@@ -346,7 +367,8 @@ def leaderboard_section(groups: dict, results: Path, dataset: str) -> str:
             + "<h2>Qualitative (2-D)</h2>" + _png(montage(groups, results), "RGB, ground truth and predictions"))
 
 
-def render(results: Path, dataset: str, groups: dict, max_points: int = MAX_POINTS, models: dict | None = None) -> str:
+def render(results: Path, dataset: str, groups: dict, max_points: int = MAX_POINTS, models: dict | None = None,
+           match_points: int = MATCH_POINTS, match_figures: int = MATCH_FIGURES) -> str:
     """The report's HTML (plotly.js embedded once, no external resource)."""
     from plotly.offline import get_plotlyjs
 
@@ -356,7 +378,8 @@ def render(results: Path, dataset: str, groups: dict, max_points: int = MAX_POIN
                 "<code>evaluate3d --data DATA --out RESULTS</code> to see the reconstructed scenes and matches.</p>")
     else:
         scenes, matches, diagnostics = load_scenes(results, record[0], max_points, models)
-        body = scenes_section(scenes, diagnostics, groups) + matches_section(scenes, matches, diagnostics, max_points)
+        body = (scenes_section(scenes, diagnostics, groups)
+                + matches_section(scenes, matches, diagnostics, match_points, match_figures))
     title = f"selfseg report: {dataset}"
     return (f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
             f"<style>{STYLE}</style><script>{get_plotlyjs()}</script><script>{SCRIPT}</script></head><body>"
@@ -365,10 +388,12 @@ def render(results: Path, dataset: str, groups: dict, max_points: int = MAX_POIN
 
 
 def write_report(results: str | Path, out: str | Path, dataset: str | None = None, max_points: int = MAX_POINTS,
-                 models: dict | None = None) -> Path:
+                 models: dict | None = None, match_points: int = MATCH_POINTS, match_figures: int = MATCH_FIGURES) -> Path:
     """Write the report of ``dataset`` (the folder name under ``RESULTS/scores``; may be omitted when there is one)."""
-    if max_points < 1:
-        raise ConfigError(f"--max-points must be ≥ 1, got {max_points}")
+    for flag, value, least in (("--max-points", max_points, 1), ("--match-points", match_points, 1),
+                               ("--match-figures", match_figures, 0)):
+        if value < least:
+            raise ConfigError(f"{flag} must be ≥ {least}, got {value}")
     results = Path(results)
     if results.parent.name == SCORES_DIR and dataset is None:  # RESULTS/scores/<dataset>
         results, dataset = results.parent.parent, results.name
@@ -382,7 +407,7 @@ def write_report(results: str | Path, out: str | Path, dataset: str | None = Non
     if dataset not in found:
         raise ConfigError(f"--dataset {dataset!r}: no results in {results / SCORES_DIR} (found: "
                           f"{', '.join(found) or 'none'})")
-    atomic_write_text(out, render(results, dataset, found[dataset], max_points, models))
+    atomic_write_text(out, render(results, dataset, found[dataset], max_points, models, match_points, match_figures))
     return Path(out)
 
 
@@ -393,10 +418,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="results folder of evaluate/evaluate3d --out, or one dataset's RESULTS/scores/<dataset>")
     p.add_argument("--dataset", help="the dataset (folder name under RESULTS/scores/) when there are several")
     p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
-    p.add_argument("--max-points", type=int, default=MAX_POINTS, help=f"points drawn per cloud (default {MAX_POINTS})")
+    p.add_argument("--max-points", type=int, default=MAX_POINTS,
+                   help=f"points drawn per scene cloud (default {MAX_POINTS})")
+    p.add_argument("--match-points", type=int, default=MATCH_POINTS,
+                   help=f"points drawn per side of a match (default {MATCH_POINTS})")
+    p.add_argument("--match-figures", type=int, default=MATCH_FIGURES,
+                   help=f"matches drawn per outcome, the first ones; every match is listed (default {MATCH_FIGURES})")
     args = p.parse_args(argv)
     try:
-        print(write_report(args.results, args.out, args.dataset, args.max_points))
+        print(write_report(args.results, args.out, args.dataset, args.max_points, match_points=args.match_points,
+                           match_figures=args.match_figures))
     except (ConfigError, DatasetError, FileFormatError, FileNotFoundError) as e:
         print(f"inspect: error: {e}", file=sys.stderr)
         return 2

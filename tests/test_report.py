@@ -42,7 +42,7 @@ def run(tmp_path_factory):
     report = root / "report.html"
     write_report(out, report, max_points=MAX_POINTS, models=models)
     pseudo = table2_pipeline(ds, config, out).pseudo_dir()
-    return {"dataset": ds, "results": out, "report": report, "html": report.read_text(),
+    return {"dataset": ds, "results": out, "report": report, "html": report.read_text(), "models": models,
             "matches": read_json(pseudo / MATCHES_JSON), "diagnostics": read_json(pseudo / DIAGNOSTICS_JSON)}
 
 
@@ -100,11 +100,34 @@ def test_report_holds_every_scene_and_match_offline(run):
     assert run["report"].stat().st_size < SIZE_BOUND
 
 
+def test_match_figures_are_capped_per_outcome_and_every_match_is_listed(run, tmp_path):
+    """--match-figures 1 --match-points 50: one figure per outcome (the first match of each), at most 50 points a
+    side, every match still a row (the others marked not drawn), and a line saying how many are drawn."""
+    out = tmp_path / "capped.html"
+    write_report(run["results"], out, max_points=MAX_POINTS, models=run["models"], match_points=50, match_figures=1)
+    html = out.read_text()
+    outcomes = [match_outcome(len(m["merged_edges"]), [p["reason"] for p in m["pairs"] if not p["accepted"]])
+                for m in run["matches"]["matches"]]
+    first = {o: outcomes.index(o) for o in set(outcomes)}
+    drawn = sorted(int(n) for n in re.findall(r'id="fig-match-(\d+)"', html))
+    assert drawn == sorted(first.values())
+    for n in range(len(outcomes)):
+        row = html[html.index(f'<span id="match-{n}">'):]
+        assert ("(not drawn)" in row[:row.index("</tr>")]) == (n not in drawn)
+    for n in drawn:
+        panels = figure(html, f"fig-match-{n}")["data"]
+        assert 0 < n_points(panels[0]) <= 50 and 0 < n_points(panels[2]) <= 50
+    assert len(drawn) < len(outcomes)  # the run has several matches of one outcome: the cap is exercised
+    assert f"{len(drawn)} of {len(outcomes)} matches are drawn" in html
+
+
 def test_bad_input_is_one_line_and_2d_only_results_still_report(run, tmp_path, capsys):
     out = tmp_path / "r.html"
     assert main([str(tmp_path / "nothing"), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("inspect: error: ") and str(tmp_path / "nothing") in err and "\n" not in err
+    assert main([str(run["results"]), "--out", str(out), "--match-figures", "-1"]) == 2
+    assert capsys.readouterr().err.strip() == "inspect: error: --match-figures must be ≥ 0, got -1"
     # the scores without the run's stage files: the missing pseudo stage is named
     scores_only = tmp_path / "scores_only"
     shutil.copytree(run["results"] / SCORES_DIR, scores_only / SCORES_DIR)
