@@ -54,7 +54,7 @@ from selfseg.writers import write_inst
 # Files of the stages this module owns (recon's are in selfseg.method.recon_stage), relative to the stage folder.
 SEGMENTS_NPZ = "segments.npz"  # overseg: the segment graph (segment per reconstructed point, −1 = none; edges; sizes)
 SEGMAPS_DIR = "segmaps"  # overseg: the segments projected into every frame (LABEL_MAP_PNG files)
-OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts
+OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts; timings (s)
 PHI1_DIR = "phi1/{key_hash}"  # in the stage root: φ1 trained on the over-segments of a set of videos
 FEATURES_NPY = "features/{video_id}.npy"  # pseudo: φ1 feature per segment (n_segments × D, unit vectors)
 LABELS_NPY = "labels/{video_id}.npy"  # pseudo: object pseudo-label per reconstructed point (−1 = none)
@@ -162,14 +162,20 @@ def run_overseg_stage(video: Video, cache: StageCache, cfg: OursConfig, progress
     if cache.is_valid("overseg", video.video_id, key):
         return cache.path("overseg", video.video_id)
     rec = load_recon(recon_dir)
+    t0 = time.perf_counter()
     # VCCS colour distances use 0–255 like PCL; reconstructed colours are in [0, 1]
     labels = oversegment(rec.points_w, rec.normals_w, rec.colors * 255.0, rec.occupancy, cfg.overseg)
+    t1 = time.perf_counter()
     graph = build_segment_graph(rec.points_w, labels, cfg.adjacency_radius_m)
+    t2 = time.perf_counter()
     with cache.write("overseg", video.video_id, key) as tmp:
         graph.save(tmp / SEGMENTS_NPZ)
         write_label_maps(tmp / SEGMAPS_DIR, video, rec.points_w, labels, rec.T_world_cam, cfg.projection, progress)
-        write_json(tmp / OVERSEG_REPORT_JSON, {"n_points": len(labels), "n_segments": graph.n_segments,
-                                         "n_edges": len(graph.edges), "n_components": len(graph.components())})
+        write_json(tmp / OVERSEG_REPORT_JSON, {
+            "n_points": len(labels), "n_segments": graph.n_segments, "n_edges": len(graph.edges),
+            "n_components": len(graph.components()),
+            "timings_s": {"overseg_s": round(t1 - t0, 3), "graph_s": round(t2 - t1, 3),
+                        "maps_s": round(time.perf_counter() - t2, 3)}})
     return cache.path("overseg", video.video_id)
 
 

@@ -28,6 +28,7 @@ import concurrent.futures as cf
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+import time
 from typing import Literal, Sequence
 
 import numpy as np
@@ -254,15 +255,23 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         graphs.append(SceneGraph(s.scene_id, feats, np.asarray(s.graph.edges, dtype=np.int64).reshape(-1, 2),
                                  [np.asarray(c, dtype=np.int64) for c in s.graph.components()]))
     pc = cfg.prune
+    t0 = time.perf_counter()
     clouds = [segment_clouds(s, pc.max_points_per_node, pc.seed) for s in scenes]
+    seconds = {"clouds_s": time.perf_counter() - t0}
     stats: dict = {}
     if cfg.mode == "v4_registration_only":
+        t0 = time.perf_counter()
         decisions = _v4_decisions(graphs, clouds, cfg, executor, progress)
+        seconds["registration_s"] = time.perf_counter() - t0
     else:
+        t0 = time.perf_counter()
         matches = match_all(graphs, cfg.match, executor, progress)
+        seconds["matching_s"] = time.perf_counter() - t0
         stats = match_stats(matches)
         if cfg.mode == "ours":
+            t0 = time.perf_counter()
             decisions = prune_matches(matches, lambda s, seg: clouds[s][seg], pc, executor, progress)
+            seconds["pruning_s"] = time.perf_counter() - t0  # registration included
         elif cfg.mode == "v3_no_pruning":
             decisions = [MatchDecision(m.src_scene, m.src_comp, m.tgt_scene, m.tgt_comp, m.result.node_map,
                                        m.result.edge_map,
@@ -286,5 +295,6 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         "merged_groups": groups,
         "matches": [d.to_json(ids) for d in decisions],
     })
-    write_json(out_dir / DIAGNOSTICS_JSON, {"mode": cfg.mode, **diagnostics(ids, graphs, stats, decisions, objects)})
+    write_json(out_dir / DIAGNOSTICS_JSON, {"mode": cfg.mode, **diagnostics(ids, graphs, stats, decisions, objects),
+                                            "timings_s": {k: round(v, 3) for k, v in seconds.items()}})
     return labels

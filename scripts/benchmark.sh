@@ -3,8 +3,8 @@
 # (3 folds), score the 3D segmentations (Table II) and rebuild leaderboards/<dataset>.md.
 # Usage: scripts/benchmark.sh [RUN_DIR] [PRESET]   (defaults runs/benchmark, benchmark; PRESET is benchmark,
 # calibrated, cluttered or their -noisy variants; every step resumes from what is on disk). The methods run as two parallel streams, one per core
-# (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall time of every step goes to
-# RUN_DIR/timings.tsv.
+# (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall and CPU time and peak memory of
+# every step go to RUN_DIR/timings.tsv, the run's wall time as its last row (`total`); bench/profile_run.py reads them.
 # KEEP_EARLIER=1 finishes a run over several sessions: a method whose folds of this dataset (same content hash) are
 # already in RUN_DIR/results with the config it would run with now, from whatever commit, is not run again (the
 # leaderboard's Runs table names each run's commit); a method whose config changed runs again and replaces the
@@ -37,6 +37,7 @@ CONFIGS=${PRESET%-noisy}
 SUP=configs/supervised-$CONFIGS.yaml
 OURS=configs/ours-$CONFIGS.yaml
 mkdir -p "$RUN"
+START=$SECONDS
 # The disjoint-object training set of baselines B and D and of v1-disjoint: objects the preset's scenes never use.
 case $PRESET in
   benchmark)  # builtin objects outside generate/presets.py BENCHMARK_POOL
@@ -47,11 +48,20 @@ case $PRESET in
   *) echo "scripts/benchmark.sh: unknown preset '$PRESET' (benchmark, calibrated, cluttered, or calibrated-noisy, cluttered-noisy)" >&2; exit 2 ;;
 esac
 
-step() {  # step NAME COMMAND...: run, append "NAME<TAB>seconds" to timings.tsv
+step() {  # step NAME COMMAND...: run it; append "NAME<TAB>wall s<TAB>CPU s<TAB>peak MB" to timings.tsv (CPU: user +
+  # system of the command and every process it waited for; peak: the largest resident set among them)
   local name=$1; shift
-  local t0=$SECONDS
-  "$@"
-  printf '%s\t%d\n' "$name" $((SECONDS - t0)) >> "$RUN/timings.tsv"
+  $BIN/python - "$RUN/timings.tsv" "$name" "$@" <<'PY'
+import resource, subprocess, sys, time
+tsv, name, cmd = sys.argv[1], sys.argv[2], sys.argv[3:]
+t0 = time.monotonic()
+rc = subprocess.run(cmd, stdin=subprocess.DEVNULL).returncode
+if rc == 0:
+    u = resource.getrusage(resource.RUSAGE_CHILDREN)
+    with open(tsv, "a") as f:
+        f.write(f"{name}\t{time.monotonic() - t0:.0f}\t{u.ru_utime + u.ru_stime:.0f}\t{u.ru_maxrss / 1024:.0f}\n")
+sys.exit(rc)
+PY
 }
 
 step generate $BIN/generate_scenes --preset "$PRESET" --seed "$SEED" --out "$DATA" --workers 2 --quiet
@@ -128,5 +138,6 @@ failed=0
 wait $A || failed=1
 wait $B || failed=1
 if [ $failed = 1 ]; then echo "scripts/benchmark.sh: a stream failed; see $RUN/stream-{a,b}.log" >&2; exit 1; fi
+printf 'total\t%d\t\t\n' $((SECONDS - START)) >> "$RUN/timings.tsv"
 
 [ "$CONFIRM" = 1 ] || $BIN/python -m selfseg.eval.leaderboard --results "$RESULTS" --out leaderboards/
