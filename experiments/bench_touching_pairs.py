@@ -18,6 +18,8 @@ with the config's settings runs on four clouds of the scene:
 
 A pair is *joined* when one segment holds at least JOIN_SHARE of both objects' contact points (each object's
 points within CONTACT_M of the other's); pairs with fewer than 5 contact points on a side are not comparable.
+Each cloud's LCCP segmentation is also scored as a whole (P, R, IoU over its points, per video, then the mean:
+LCCP alone, without SymSeg or the pipeline's pruning of small segments, so not Table II's LCCP row).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ import numpy as np
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.datastats import touching_pairs
+from selfseg.eval.metrics import segment_metrics
 from selfseg.eval.points import gt_point_labels, gt_scene
 from selfseg.eval.provenance import machine
 from selfseg.eval.table2 import alignment
@@ -134,7 +137,7 @@ def main(argv=None) -> int:
     ds = Dataset(args.data)
     cfg = load_config(OursConfig, args.config, args.overrides)
     vids = args.videos.split(",") if args.videos else ds.video_ids
-    rows = []
+    rows, videos = [], []
     for vid in vids:
         scene = gt_scene(ds, vid)
         pairs = touching_pairs(scene)
@@ -154,6 +157,9 @@ def main(argv=None) -> int:
         if "recon_points_gt_normals" in variants:
             clouds["recon_points_gt_normals"] = (
                 lccp_segment(r_pts, mesh_normals(scene, r_pts, r_nrm), rec.colors, cfg.overseg.lccp), r_gt, r_pts)
+        scores = {k: segment_metrics(lab + 1, gt) for k, (lab, gt, _) in clouds.items()}  # −1 (none) → 0
+        videos.append({"video": vid, "touching_pairs": len(pairs),
+                       **{k: {m: round(float(v[m]), 4) for m in ("P", "R", "IoU")} for k, v in scores.items()}})
         for a, b in pairs:
             row = {"video": vid, "pair": [int(a), int(b)],
                    **{k: joined(lab, gt, pts, a, b) for k, (lab, gt, pts) in clouds.items()}}
@@ -170,6 +176,10 @@ def main(argv=None) -> int:
     for k in variants:
         ok = [r[k]["joined"] for r in rows if r[k]["joined"] is not None]
         print(f"  {k}: joined {sum(ok)} of {len(ok)} ({100 * sum(ok) / max(len(ok), 1):.0f} %)")
+    segmentation = {k: {m: round(float(np.mean([v[k][m] for v in videos])), 4) for m in ("P", "R", "IoU")}
+                    for k in variants}
+    for k, v in segmentation.items():
+        print(f"  {k}: LCCP P {v['P']:.3f} R {v['R']:.3f} IoU {v['IoU']:.3f} (mean over videos, every point)")
     joined_share = {k: [r[k]["joined"] for r in rows if r[k]["joined"] is not None] for k in variants}
     write_json(args.json, {"what": "LCCP on touching object pairs: ground-truth geometry against the reconstruction "
                                    "(experiments/bench_touching_pairs.py)",
@@ -178,7 +188,7 @@ def main(argv=None) -> int:
                            "joined": {k: {"joined": sum(v), "comparable": len(v)} for k, v in joined_share.items()},
                            "gt_vs_recon": {f"gt_{'joined' if g else 'separate'}_recon_{'joined' if r else 'separate'}": v
                                            for (g, r), v in tab.items()},
-                           "rows": rows})
+                           "segmentation": segmentation, "videos": videos, "rows": rows})
     return 0
 
 
