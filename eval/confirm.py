@@ -5,6 +5,8 @@
     python -m selfseg.eval.confirm check --preset calibrated         # may this checkout run them? (exit 2: no)
     python -m selfseg.eval.confirm board --preset calibrated --runs runs/confirm \\
         --dev "seed 0=leaderboards/results/calibrated"               # the section of leaderboards/calibrated.md
+    python -m selfseg.eval.confirm compare --results RESULTS --b ours-v2 --b depth-clustering
+                                                                     # one seed's paired claims, with verdicts
 
 **Freeze.** ``freeze`` records the clean HEAD as the freeze commit (its code and every ``configs/`` file's
 hash) in ``leaderboards/<preset>-freeze.json``, to be committed at once. The fresh seeds are derived from the
@@ -218,6 +220,24 @@ def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path) -> Path
     return out
 
 
+def compare_lines(results: Path, a: str, others: list[str]) -> list[str]:
+    """``a`` − each of ``others`` on one results folder's test videos (one seed), as :func:`paired` reads it."""
+    groups = _only_dataset(results)
+    seed = Seed("", False, {n: r for (t, n), r in groups.items() if t == "2d"})
+    mine = pooled_videos([seed], a)
+    if not mine:
+        raise FileFormatError(f"{results}: no 2-D results of {a!r}")
+    lines = []
+    for other in others:
+        theirs = pooled_videos([seed], other)
+        if not theirs:
+            raise FileFormatError(f"{results}: no 2-D results of {other!r}")
+        d = paired(mine, theirs)
+        lines.append(f"{a} − {other}: {d['mean']:+.3f} IoU, 95 % CI [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] over "
+                     f"{d['n_videos']} test videos ({d['wins']} won): {d['verdict']}")
+    return lines
+
+
 def _dev_arg(text: str) -> tuple[str, Path]:
     label, sep, path = text.partition("=")
     if not sep or not label or not path:
@@ -227,7 +247,7 @@ def _dev_arg(text: str) -> tuple[str, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m selfseg.eval.confirm", description=__doc__.splitlines()[0])
-    p.add_argument("command", choices=("freeze", "seeds", "check", "board"))
+    p.add_argument("command", choices=("freeze", "seeds", "check", "board", "compare"))
     p.add_argument("--preset", default="calibrated")
     p.add_argument("--n-seeds", type=int, default=N_SEEDS, help="freeze: how many fresh seeds")
     p.add_argument("--runs", type=Path, default=Path("runs/confirm"),
@@ -235,7 +255,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dev", type=_dev_arg, action="append", default=[], metavar="LABEL=RESULTS",
                    help="board: a development seed's results folder, shown beside the fresh seeds (repeatable)")
     p.add_argument("--out", type=Path, help="board: the leaderboard page (default leaderboards/<preset>.md)")
+    p.add_argument("--results", type=Path, help="compare: one dataset's results folder (evaluate --out)")
+    p.add_argument("--a", default="ours", help="compare: the run whose claims are tested (default ours)")
+    p.add_argument("--b", action="append", default=[], metavar="NAME",
+                   help="compare: a run to compare against, paired over the same test videos (repeatable)")
     args = p.parse_args(argv)
+    if args.command == "compare" and (args.results is None or not args.b):
+        p.error("compare needs --results and at least one --b")
     try:
         if args.command == "freeze":
             rec = freeze(args.preset, args.n_seeds)
@@ -245,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
             print("\n".join(map(str, read_freeze(args.preset)["seeds"])))
         elif args.command == "check":
             check_checkout(read_freeze(args.preset))
+        elif args.command == "compare":
+            print("\n".join(compare_lines(args.results, args.a, args.b)))
         else:
             print(board(read_freeze(args.preset), args.runs, args.dev,
                         args.out or ROOT / "leaderboards" / f"{args.preset}.md"))

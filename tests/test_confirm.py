@@ -5,7 +5,7 @@ import pytest
 
 from selfseg.eval.cli import main as evaluate
 from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
-                               check_checkout, fresh_seeds, frozen_paths_differ)
+                               check_checkout, fresh_seeds, frozen_paths_differ, main)
 from selfseg.eval.leaderboard import BEGIN as BUILD_BEGIN
 from selfseg.eval.pooled import paired, pooled_videos, score
 from selfseg.fileio import read_json, write_json
@@ -73,6 +73,18 @@ def test_board_pools_the_fresh_seeds_and_keeps_the_build_section(runs, tmp_path)
     assert "| ours | 1.000 (1.000–1.000) |" in text
     board(rec, root, [("seed 0", root / SEED_RESULTS_DIR.format(seed=101))], page)
     assert page.read_text() == text  # idempotent
+
+
+def test_compare_gives_one_seeds_paired_claims_with_verdicts(runs, capsys):
+    """`confirm compare` on one results folder: the oracle (as ours) against one segment holds on every video;
+    a run the folder lacks is one line and exit 2."""
+    root, _ = runs
+    results = root / SEED_RESULTS_DIR.format(seed=101)
+    assert main(["compare", "--results", str(results), "--b", "depth-clustering"]) == 0
+    (line,) = capsys.readouterr().out.strip().splitlines()
+    assert line.startswith("ours − depth-clustering: +") and line.endswith(": holds")
+    assert main(["compare", "--results", str(results), "--b", "ours-v2"]) == 2
+    assert capsys.readouterr().err.strip() == f"confirm: error: {results}: no 2-D results of 'ours-v2'"
 
 
 def test_board_refuses_a_record_from_code_that_moved_since_the_freeze(runs, tmp_path):
