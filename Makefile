@@ -1,5 +1,5 @@
 # selfseg: two commands on a fresh Debian/Ubuntu machine with Python 3.11.
-#   make demo   install everything, then run the demo on the tiny preset
+#   make demo   install everything, then run the demo on the demo preset
 #   make test   install everything, then run the whole test suite (what CI runs)
 SHELL := /bin/bash
 PYTHON ?= $(shell command -v python3.11 || command -v python3)

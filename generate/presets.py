@@ -18,6 +18,8 @@
   so that objects touch (9.8 touching pairs per scene, all 12 objects kept; dev seed 7, scenes 0–4).
 * ``calibrated-noisy``, ``cluttered-noisy``: the same with structured-light depth noise
   (``render.depth_noise``: the Kinect v1 defaults of :class:`~selfseg.generate.depth_noise.DepthNoiseConfig`).
+* ``demo``: what ``make demo`` runs: ``calibrated``'s layout at demo size, 6 scenes × 36 frames at 160×120, 4 of 6
+  ``paper`` toys per scene (each in about 4 scenes), dropped apart, so that matching has objects to merge.
 * ``paper-synthetic``: as in the paper: 36 videos × 800 frames, 12 objects per scene drawn from
   a fixed 17-object subset, 640×480. ``frame_step`` n renders only every n-th frame.
 """
@@ -115,6 +117,10 @@ PRESETS: dict[str, dict] = {
     "calibrated": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 8,
                    "library": "paper", "orbit": CLOSE_ORBIT,
                    "physics": {"layout": "spread", "drop_radius_m": 0.25, "spread_gap_m": 0.01}},
+    # the demo: calibrated's layout at 160×120, few scenes (docs/experiments/2026-11-26-demo-preset-candidate.md)
+    "demo": {"scenes": 6, "frames": 36, "width": 160, "height": 120, "objects_per_scene": 4, "library": "paper",
+             "object_pool": ["toy_car", "toy_rocket", "snowman", "toy_robot", "mushroom", "toy_house"],
+             "orbit": CLOSE_ORBIT, "physics": {"layout": "spread", "drop_radius_m": 0.25, "spread_gap_m": 0.01}},
     # the paper's density: 12 toys per scene in one pile
     "cluttered": {"scenes": 12, "frames": 120, "width": 320, "height": 240, "objects_per_scene": 12,
                   "library": "paper", "orbit": CLOSE_ORBIT},
