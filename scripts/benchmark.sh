@@ -30,12 +30,14 @@ SKIP=" ${SKIP:-} "
 PAPER_PRUNING=(--set pseudo.match.c_del_node=0.1 --set pseudo.match.c_del_edge=0.1 --set pseudo.prune.alpha=0.1
                --set pseudo.prune.pr_thresh=0.9 --set pseudo.prune.witness_pr_thresh=null
                --set pseudo.prune.isolation_cover=null)
-# The methods' configs: cluttered and the noisy variants run calibrated's unchanged (not re-tuned on them, so
-# the drop from calibrated is the data's doing).
-CONFIGS=${PRESET%-noisy}
-[ "$CONFIGS" = cluttered ] && CONFIGS=calibrated
-SUP=configs/supervised-$CONFIGS.yaml
-OURS=configs/ours-$CONFIGS.yaml
+# The methods' configs: a noisy variant runs its preset's (not re-tuned on noise, so the drop is the noise's
+# doing); a preset without its own file of a method (cluttered's supervised) runs calibrated's.
+BASE=${PRESET%-noisy}
+config() {  # config METHOD: the YAML file METHOD runs with on this preset
+  if [ -f "configs/$1-$BASE.yaml" ]; then echo "configs/$1-$BASE.yaml"; else echo "configs/$1-calibrated.yaml"; fi
+}
+SUP=$(config supervised)
+OURS=$(config ours)
 mkdir -p "$RUN"
 START=$SECONDS
 # The disjoint-object training set of baselines B and D and of v1-disjoint: objects the preset's scenes never use.
