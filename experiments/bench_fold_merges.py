@@ -14,14 +14,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from common import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save
+from common import fold_bench_inputs, fold_bench_parser, pseudo_stage, save
 
-from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.merges import merge_scores
 from selfseg.eval.table2 import merge_inputs
 from selfseg.fileio import read_json
-from selfseg.method.pipeline import LABELS_NPY, OursConfig
+from selfseg.method.pipeline import LABELS_NPY
 from selfseg.method.pseudolabels import DIAGNOSTICS_JSON
 
 
@@ -43,12 +42,10 @@ def fold_scores(fold_dir: Path, seg, gt_inst, dataset: Dataset) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     args = fold_bench_parser(__doc__, "experiments/results/fold_merges.json").parse_args(argv)
-    dataset = Dataset(args.data)
-    config = load_config(OursConfig, args.config)
-    seg, _, gt_inst = gt_labeled(dataset, config, args.results)
-    folds = runs_folds("bench_fold_merges", args, dataset)
-    if folds is None:
+    inputs = fold_bench_inputs("bench_fold_merges", args)
+    if inputs is None:
         return 2
+    dataset, config, seg, _, gt_inst, folds = inputs
     rows = [{"run": run, "fold": f.name, **fold_scores(f, seg, gt_inst, dataset)} for run, f in folds]
     print(f"{'run':<10} {'fold':<6} {'merges':>6} {'within P':>9} {'within R':>9} {'across P':>9} {'across R':>9}")
     f = lambda x: "–" if x is None else f"{x:.3f}"  # noqa: E731

@@ -25,9 +25,8 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from common import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
+from common import fold_bench_inputs, fold_bench_parser, pseudo_stage, save, segment_clouds_of
 
-from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.merges import same_object
 from selfseg.eval.table2 import merge_inputs
@@ -102,12 +101,10 @@ def fold_rows(fold_dir: Path, seg, gt_inst, dataset: Dataset, config: OursConfig
 
 def main(argv: list[str] | None = None) -> int:
     args = fold_bench_parser(__doc__, "experiments/results/isolation.json").parse_args(argv)
-    dataset = Dataset(args.data)
-    config = load_config(OursConfig, args.config)
-    seg, _, gt_inst = gt_labeled(dataset, config, args.results)
-    folds = runs_folds("bench_isolation", args, dataset)
-    if folds is None:
+    inputs = fold_bench_inputs("bench_isolation", args)
+    if inputs is None:
         return 2
+    dataset, config, seg, _, gt_inst, folds = inputs
     rows = [{"run": run, **fold_rows(f, seg, gt_inst, dataset, config)} for run, f in folds]
     for r in rows:
         print(f"{r['run']} {r['fold']}: {sum(r['unmerged'].values())} of {r['adjacent_same_instance_pairs']} "

@@ -28,9 +28,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from common import fold_bench_parser, gt_labeled, pseudo_stage, runs_folds, save, segment_clouds_of
+from common import fold_bench_inputs, fold_bench_parser, pseudo_stage, save, segment_clouds_of
 
-from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.merges import segment_instances
 from selfseg.eval.points import gt_object_poses
@@ -124,12 +123,10 @@ def main(argv: list[str] | None = None) -> int:
     p = fold_bench_parser(__doc__, "experiments/results/registration_oracle.json")
     p.add_argument("--restarts", type=int, default=0, help="also register each match from this many RANSAC seeds")
     args = p.parse_args(argv)
-    dataset = Dataset(args.data)
-    config = load_config(OursConfig, args.config)
-    seg, aligned, gt_inst = gt_labeled(dataset, config, args.results)
-    folds = runs_folds("bench_registration_oracle", args, dataset)
-    if folds is None:
+    inputs = fold_bench_inputs("bench_registration_oracle", args)
+    if inputs is None:
         return 2
+    dataset, config, seg, aligned, gt_inst, folds = inputs
     rows = [{"run": run, **fold_rows(f, seg, gt_inst, aligned, dataset, config, args.restarts)} for run, f in folds]
     print(f"{'run':<16} {'fold':<6} {'T2':>4} {'same-obj':>8} {'pass':>5} {'misaligned':>10} {'no overlap':>10} "
           f"{'wrong':>6} {'wrong pass':>10} {'restarts: pass / wrong pass':>28}")

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.layout import results_key
 from selfseg.eval.points import GT_MAX_DIST_M
@@ -135,6 +136,18 @@ def runs_folds(bench: str, args: argparse.Namespace, dataset: Dataset) -> list[t
             return None
         out += [(run, f) for f in folds]
     return out
+
+
+def fold_bench_inputs(bench: str, args: argparse.Namespace):
+    """What the fold benches start from: (dataset, config, segmentations, alignments, GT instance per point,
+    [(run, fold folder)]), or None after one line on stderr when a run has no folds."""
+    dataset = Dataset(args.data)
+    folds = runs_folds(bench, args, dataset)
+    if folds is None:
+        return None
+    config = load_config(OursConfig, args.config)
+    seg, aligned, gt_inst = gt_labeled(dataset, config, args.results)
+    return dataset, config, seg, aligned, gt_inst, folds
 
 
 def save(path: str, what: str, data: str, dataset: Dataset, config: str, rows: list[dict]) -> None:
