@@ -15,13 +15,15 @@ batch), with the host-side connected-component part on its own. ``fps`` is one f
 the clustering the methods use on that device (numpy on the CPU, torch on a GPU); ``fps_numpy`` and
 ``fps_torch`` with each. Reports the fastest wall and CPU time of several runs, since the cores may be
 shared (load average recorded). Training throughput is full training steps (batch, crop and
-augmentation of the default TrainConfig) on the device, also as minutes per 800 steps. Paper figure:
+augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
+the speed settings (channels_last; channels_last and bf16 autocast), each with its speed-up over float32. Paper figure:
 about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
 """
 from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -36,9 +38,12 @@ from selfseg.fileio import read_json
 from selfseg.method.features import embed_frames
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
-from selfseg.method.train import TrainConfig, resolve_device, step_loss
+from selfseg.method.train import TrainConfig, new_embedding_net, resolve_device, step_loss
 
 SIZES = ((320, 240), (640, 480))
+# Training speed settings timed side by side (TrainConfig.channels_last, .precision); "fp32" is the default.
+TRAIN_VARIANTS = {"fp32": {}, "channels_last": {"channels_last": True},
+                  "bf16": {"channels_last": True, "precision": "bf16"}}
 
 
 def synthetic_frame(w: int, h: int, n_objects: int = 8, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +139,7 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
     torch.manual_seed(0)
-    net = EmbeddingNet(net_cfg).to(device)
+    net = new_embedding_net(net_cfg, train_cfg, device)
     opt = torch.optim.AdamW(net.parameters(), lr=train_cfg.lr)
 
     def step(i: int = 0):
@@ -179,10 +184,13 @@ def main() -> None:
         entry = {"net_config": to_dict(net_cfg),
                  "inference": bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats, args.batch,
                                               device)}
-        entry["training"] = bench_training(net_cfg, train_cfg, args.train_steps, device)
-        print(f"  training: {entry['training']['images_per_s']} images/s, "
-              f"{entry['training']['minutes_per_800_steps']} min per 800 steps "
-              f"(batch {train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
+        entry["training"] = {}
+        for variant, settings in TRAIN_VARIANTS.items():
+            t = entry["training"][variant] = bench_training(net_cfg, replace(train_cfg, **settings), args.train_steps,
+                                                            device)
+            t["speedup_vs_fp32"] = round(entry["training"]["fp32"]["step_s"] / t["step_s"], 2)
+            print(f"  training ({variant}): {t['images_per_s']} images/s, {t['minutes_per_800_steps']} min per 800 "
+                  f"steps, ×{t['speedup_vs_fp32']} (batch {train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
         results["nets"][name] = entry
     if args.before is not None:
         results["before"] = read_json(args.before)

@@ -151,5 +151,8 @@ class EmbeddingNet(nn.Module):
         return self.head(self.decoder(torch.cat([deep, self.low_proj(low)], 1)))
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
-        z = F.interpolate(self.forward_stride4(rgb), size=rgb.shape[2:], mode="bilinear", align_corners=False)
-        return F.normalize(z, dim=1)
+        z = self.forward_stride4(rgb)
+        with torch.autocast(rgb.device.type, enabled=False):  # under autocast (bf16 training): upsample and
+            # normalise in float32
+            z = F.interpolate(z.float(), size=rgb.shape[2:], mode="bilinear", align_corners=False)
+            return F.normalize(z, dim=1)

@@ -176,14 +176,18 @@ def _v4_component_pair(sa: int, ca: int, sb: int, cb: int, src_nodes, tgt_nodes,
                        f_src, f_tgt, edges_a, edges_b, cfg: PseudoLabelConfig) -> MatchDecision | None:
     """V4: register component ca of scene sa onto cb of scene sb and accept node pairs.
 
-    ``f_src``/``f_tgt`` are the features of ``src_nodes``/``tgt_nodes`` (same order)."""
+    ``f_src``/``f_tgt`` are the features of ``src_nodes``/``tgt_nodes`` (same order). A pair of components
+    with no node pair at the cosine threshold can accept nothing, so it is not registered (registration is
+    seeded per call: skipping one changes no other)."""
     pc = cfg.prune
+    cos = 1.0 - cosine_distance(f_src, f_tgt)
+    if not (cos >= cfg.cos_thresh).any():
+        return None
     record = register_clouds(np.concatenate([clouds_a[i] for i in src_nodes]),
                              np.concatenate([clouds_b[k] for k in tgt_nodes]), pc)
     if "error" in record:
         return None
     T = np.asarray(record["T_tgt_src"])
-    cos = 1.0 - cosine_distance(f_src, f_tgt)
     cands = []
     for a, i in enumerate(src_nodes):
         for b, k in enumerate(tgt_nodes):

@@ -124,3 +124,23 @@ def test_merge_follows_accepted_edges_only():
     assert groups(obj0) == [[0, 1, 7], [2], [3], [4], [5], [6], [8]]
     assert groups(obj1) == [[0], [1], [2], [3, 4], [5, 6]]
     assert obj0[0] == 0 and obj0.max() == 6  # renumbered by smallest segment id
+
+
+def test_v4_registers_only_component_pairs_with_a_node_pair_at_the_cosine_threshold(monkeypatch):
+    """V4 accepts node pairs at cos ≥ cos_thresh only, so a component pair without one is not registered;
+    one with one is registered and its pair accepted (the same box in both scenes, moved)."""
+    from selfseg.method import pseudolabels
+
+    calls = []
+    real = pseudolabels.register_clouds
+    monkeypatch.setattr(pseudolabels, "register_clouds", lambda *a: calls.append(1) or real(*a))
+    box = trimesh.creation.box((0.08, 0.05, 0.04)).sample(600, seed=0)
+    moved = transform_points(box, pose(1, (0.1, 0.0, 0.0)))
+    cfg = PseudoLabelConfig(mode="v4_registration_only")
+    edges = np.zeros((0, 2), np.int64)
+    f = np.eye(4)[:1]
+    args = (0, 0, 1, 0, np.array([0]), np.array([0]), {0: box}, {0: moved})
+    assert pseudolabels._v4_component_pair(*args, f, np.eye(4)[1:2], edges, edges, cfg) is None
+    assert calls == []
+    d = pseudolabels._v4_component_pair(*args, f, f, edges, edges, cfg)
+    assert len(calls) == 1 and d is not None and [(p.src, p.tgt, p.accepted) for p in d.pairs] == [(0, 0, True)]

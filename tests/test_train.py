@@ -337,6 +337,30 @@ def test_resumed_training_equals_unbroken_run(tmp_path):
     assert (tmp_path / "full" / "loss_curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.parametrize("speed", [{"channels_last": True}, {"channels_last": True, "precision": "bf16"}])
+def test_speed_settings_train_the_same_run_to_rounding_and_resume_bitwise(tmp_path, speed):
+    """channels_last sums in another order: step 1's loss equals float32's to rounding; bf16 autocast to its
+    8-bit mantissa. Either run trains (falling loss), resumes bitwise, and its network loads for float32
+    inference with unit-norm embeddings."""
+    base = train_embedding(SyntheticSource(), tiny_cfg(), SMALL_NET, tmp_path / "fp32", progress=False)
+    cfg = tiny_cfg(**speed)
+    w = train_embedding(SyntheticSource(), cfg, SMALL_NET, tmp_path / "fast", progress=False)
+    log = json.loads((tmp_path / "fast" / "training_log.json").read_text())["loss"]
+    ref = json.loads((base.parent / "training_log.json").read_text())["loss"]
+    assert log[0] == pytest.approx(ref[0], rel=1e-2 if "precision" in speed else 1e-5)
+    assert log != ref and np.mean(log[-2:]) < np.mean(log[:2])
+    with pytest.raises(KeyboardInterrupt):
+        train_embedding(SyntheticSource(crash_after=2 * 4), cfg, SMALL_NET, tmp_path / "resumed", progress=False)
+    w_res = train_embedding(SyntheticSource(), cfg, SMALL_NET, tmp_path / "resumed", progress=False)
+    a, b = (torch.load(p, weights_only=True)["state_dict"] for p in (w, w_res))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with torch.no_grad():
+        y = load_embedding_net(w)(torch.rand(1, 3, 24, 40))
+    assert y.dtype == torch.float32 and torch.allclose(y.norm(dim=1), torch.ones(1, 24, 40), atol=1e-5)
+    with pytest.raises(ValueError, match="precision"):
+        tiny_cfg(precision="fp16")
+
+
 def test_finished_run_is_reused_and_other_settings_refused(tmp_path):
     cfg = tiny_cfg(steps=2, checkpoint_every=1)
     w = train_embedding(SyntheticSource(), cfg, SMALL_NET, tmp_path, progress=False)
