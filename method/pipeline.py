@@ -9,7 +9,9 @@ Per video, shared by every fold and variant (``STAGES/<stage>/<video_id>/``, see
 
 Per set of training videos, also in the shared stage cache:
 
-- ``phi1/<hash>/``: φ1, trained on the over-segment maps (the hash covers its settings and data).
+- ``phi1/<hash>/``: φ1, trained on the over-segment maps (the hash covers its settings and data), and the φ1
+  segment features of its training videos (``features-<hash>/<vid>.npy``), shared by `ours` and the
+  ablations that match with the same φ1.
 
 Per fold, in the method's workdir (keyed by the settings and the training videos):
 
@@ -25,6 +27,7 @@ objects: ground-truth camera poses are used only with ``recon.use_gt_poses`` (an
 from __future__ import annotations
 
 import concurrent.futures as cf
+import io
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -37,7 +40,7 @@ from tqdm import tqdm
 
 from selfseg.config import to_dict
 from selfseg.dataset import Video, read_inst
-from selfseg.fileio import hash_json, read_json, write_json
+from selfseg.fileio import atomic_write_bytes, hash_json, read_json, write_json
 from selfseg.guard import ground_truth_forbidden
 from selfseg.method.background import BackgroundConfig
 from selfseg.method.embed_method import EmbeddingMethodBase, EmbeddingMethodConfig, video_key
@@ -56,6 +59,8 @@ SEGMENTS_NPZ = "segments.npz"  # overseg: the segment graph (segment per reconst
 SEGMAPS_DIR = "segmaps"  # overseg: the segments projected into every frame (LABEL_MAP_PNG files)
 OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts; timings (s)
 PHI1_DIR = "phi1/{key_hash}"  # in the stage root: φ1 trained on the over-segments of a set of videos
+PHI1_FEATURES_NPY = "features-{key_hash}/{video_id}.npy"  # in a PHI1_DIR: φ1 feature per segment of a training
+# video (n_segments × D, unit vectors); the hash covers the feature settings, the video's overseg stage, the device
 FEATURES_NPY = "features/{video_id}.npy"  # pseudo: φ1 feature per segment (n_segments × D, unit vectors)
 LABELS_NPY = "labels/{video_id}.npy"  # pseudo: object pseudo-label per reconstructed point (−1 = none)
 PSEUDO_MAPS_DIR = "maps/{video_id}"  # pseudo: the pseudo-labels projected into every frame (LABEL_MAP_PNG files)
@@ -263,18 +268,31 @@ class Ours(EmbeddingMethodBase):
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
         if out.is_valid(*PSEUDO_STAGE, key):
             return self.pseudo_dir()
-        net = load_embedding_net(phi1, self._device)
+        net = None
         scenes, recons = [], []
         for v in tqdm(videos, desc="φ1 segment features", unit="video"):
             seg_dir = cache.path("overseg", v.video_id)
             graph = SegmentGraph.load(seg_dir / SEGMENTS_NPZ)
-            frames = v.frame_ids[::cfg.feature_stride]
-            segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f)) for f in frames}
             recons.append(load_recon(cache.path("recon", v.video_id)))
-            fgs = {f: recons[-1].fg_mask(f) for f in frames} if cfg.phi1_train.mask_background else None
-            feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
-                                            image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
-                                            fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
+            feat_key = {"feature_stride": cfg.feature_stride, "image_size": cfg.phi1_train.image_size,
+                        "crop_margin": cfg.phi1_train.crop_margin, "mask": cfg.phi1_train.mask_background,
+                        "overseg": cache.key_hash("overseg", v.video_id), "device": self._device.type}
+            feat_file = phi1.parent / PHI1_FEATURES_NPY.format(key_hash=hash_json(feat_key), video_id=v.video_id)
+            if feat_file.is_file():  # computed by another method or fold with this φ1
+                feats = np.load(feat_file)
+            else:
+                frames = v.frame_ids[::cfg.feature_stride]
+                segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f))
+                           for f in frames}
+                fgs = {f: recons[-1].fg_mask(f) for f in frames} if cfg.phi1_train.mask_background else None
+                if net is None:
+                    net = load_embedding_net(phi1, self._device)
+                feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
+                                                image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
+                                                fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
+                buf = io.BytesIO()
+                np.save(buf, feats)
+                atomic_write_bytes(feat_file, buf.getvalue())
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write(*PSEUDO_STAGE, key) as tmp:
             labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)

@@ -7,7 +7,7 @@ from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.guard import ground_truth_forbidden
 from selfseg.baselines.gt_merging import OursGTMerging
-from selfseg.method.pipeline import Ours, OursConfig, OursV2, OursV2Config, read_label_map
+from selfseg.method.pipeline import Ours, OursConfig, OursV2, OursV2Config, OursV3, OursV3Config, read_label_map
 
 FAST = ["net.width=8", "net.aspp_channels=32", "net.decoder_channels=32", "net.low_level_channels=16",
         "train.steps=6", "train.batch_size=2", "train.crop=[64, 96]", "train.image_size=160",
@@ -76,6 +76,19 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
         v2.fit(train)
     assert v2.weights_path.parent.parent.name == "phi1"  # φ1 from the shared cache, not retrained
     assert {p: p.stat().st_mtime_ns for p in stages.rglob("stage.json")} == before
+
+    # V3 matches with the same φ1: it reads the φ1 segment features ours computed instead of embedding again
+    feature_files = {p: p.stat().st_mtime_ns for p in v2.weights_path.parent.glob("features-*/*.npy")}
+    assert sorted(p.stem for p in feature_files) == ds.video_ids[:2]
+    v3 = OursV3(load_config(OursV3Config, overrides=FAST), tmp_path / "work" / "ours-v3" / "analytic" / "fold0")
+    v3.stage_root = stage_root
+    with ground_truth_forbidden(dense_dataset):
+        v3.label_source(train)
+    assert {p: p.stat().st_mtime_ns for p in v2.weights_path.parent.glob("features-*/*.npy")} == feature_files
+    for vid in ds.video_ids[:2]:
+        ours_feats, v3_feats = (np.load(w / "pseudo" / "all" / "scenes" / "features" / f"{vid}.npy")
+                                for w in (work, v3.workdir))
+        assert np.array_equal(ours_feats, v3_feats)
 
     # the ground-truth merging ceiling (reads ground truth) reuses the same per-video stages; its labels are
     # the over-segments relabelled by their merged group, and it refuses videos without ground truth
