@@ -110,7 +110,7 @@ def main() -> int:
         print(_row([s["step"], s["wall_s"], s["cpu_s"], s["peak_mb"], m.get("fit_s"), m.get("inference_s"),
                     m.get("scoring_s")]))
     print(f"total wall: {total if total is not None else 'not recorded'} s; sum of step walls "
-          f"{sum(s['wall_s'] or 0 for s in steps):.0f} s (two streams run side by side)")
+          f"{sum(s['wall_s'] or 0 for s in steps):.0f} s (the jobs run two at a time)")
     rec, ovs = stages["reconstruction"], stages["overseg"]
     print(f"reconstruction: {rec['videos']} videos, {rec.get('total_s', 0):.0f} s; over-segmentation: "
           f"{ovs.get('overseg_s', 0) + ovs.get('graph_s', 0) + ovs.get('maps_s', 0):.0f} s "

@@ -2,15 +2,16 @@
 # A preset's leaderboard (benchmark or calibrated): generate the data, evaluate every method under the paper's protocol
 # (3 folds), score the 3D segmentations (Table II) and rebuild leaderboards/<dataset>.md.
 # Usage: scripts/benchmark.sh [RUN_DIR] [PRESET]   (defaults runs/benchmark, benchmark; PRESET is benchmark,
-# calibrated, cluttered or their -noisy variants; every step resumes from what is on disk). The methods run as two parallel streams, one per core
-# (torch uses one thread per process), logged to RUN_DIR/stream-{a,b}.log; the wall and CPU time and peak memory of
-# every step go to RUN_DIR/timings.tsv, the run's wall time as its last row (`total`); bench/profile_run.py reads them.
+# calibrated, cluttered or their -noisy variants; every step resumes from what is on disk). The runs are jobs of a
+# queue with one worker per core (torch uses one thread per process; scripts/queue.sh), each logged to
+# RUN_DIR/logs/<job>.log; the wall and CPU time and peak memory of every step go to RUN_DIR/timings.tsv, the run's
+# wall time as its last row (`total`); bench/profile_run.py reads them.
 # KEEP_EARLIER=1 finishes a run over several sessions: a method whose folds of this dataset (same content hash) are
 # already in RUN_DIR/results with the config it would run with now, from whatever commit, is not run again (the
 # leaderboard's Runs table names each run's commit); a method whose config changed runs again and replaces the
 # earlier run (`evaluate --replace`). Without it a method's finished folds are reused only at the same commit and
 # config, as `evaluate` does.
-# SEED=S generates the preset at dataset seed S (default 0). SKIP="name ..." leaves those runs out. CONFIRM=1 is the
+# SEED=S generates the preset at dataset seed S (default 0). SKIP="name ..." leaves those runs (or evaluate3d) out. CONFIRM=1 is the
 # confirmation protocol's subset (scripts/confirm.sh): no PiCIE, STEGO, V1, one-segment or the GT-merging diagnostic,
 # and no leaderboard rebuild (the confirmation board pools the seeds instead).
 set -euo pipefail
@@ -108,38 +109,48 @@ evaluate() {  # evaluate METHOD ARGS...: one method under its own name
   evaluate_as "$1" "$@"
 }
 
-stream_a() {  # the geometric baselines, the supervised bound, two ablations, then baselines B and D
-  for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m"; done
-  evaluate supervised --config "$SUP"
-  [ "$CONFIRM" = 1 ] || evaluate ours-v3 --config "$OURS"  # in stream b under CONFIRM=1: there b has no PiCIE, STEGO
-  evaluate ours-v4 --config "$OURS"
-  { { skipped v1-disjoint || kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT"; } &&
-    kept uois-sim 3 uois-sim --set train_data="$DISJOINT" && kept sdmaskrcnn-sim 3 sdmaskrcnn-sim --set train_data="$DISJOINT"; } ||
-    step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
-      --out "$DISJOINT" --workers 2 --quiet
-  evaluate v1-disjoint --config "$SUP" --set train_data="$DISJOINT"
-  # Baselines B and D, trained once on the disjoint-object set with ground truth, tested zero-shot.
-  for m in uois-sim sdmaskrcnn-sim; do evaluate "$m" --set train_data="$DISJOINT"; done
+# The runs as jobs of a queue (scripts/queue.sh) with one worker per core (torch uses one thread per process).
+job_geometric() {  # the geometric baselines and the oracle: a minute together
+  for m in one-segment fg-components depth-clustering lccp-frame oracle; do evaluate "$m" || return; done
 }
-
-stream_b() {  # ours (its φ1 is cached for V2), the matching step's ceiling, Table II, then baselines E and F
-  # ours-gt-merging (a diagnostic that reads ground truth): φ2 as in ours on the over-segments merged by ground
-  # truth, so ours-gt-merging − ours-v2 is the most a perfect matching and pruning step could add in Table I.
-  for m in ours ours-v2 ours-gt-merging; do evaluate "$m" --config "$OURS"; done
-  [ "$CONFIRM" = 1 ] && evaluate ours-v3 --config "$OURS"  # evens out the two streams
-  evaluate_as ours-paper-pruning ours --config "$OURS" "${PAPER_PRUNING[@]}"
+job_supervised() { evaluate supervised --config "$SUP"; }
+# V2 trains φ1 (its final network) per fold; ours, V3, V4 and the paper's pruning then read φ1 and its segment
+# features from the stage cache, and the other runs on the per-video stages find them built.
+job_ours-v2() { evaluate ours-v2 --config "$OURS"; }
+job_ours() { evaluate ours --config "$OURS"; }
+job_ours-v3() { evaluate ours-v3 --config "$OURS"; }
+job_ours-v4() { evaluate ours-v4 --config "$OURS"; }
+job_ours-paper-pruning() { evaluate_as ours-paper-pruning ours --config "$OURS" "${PAPER_PRUNING[@]}"; }
+# ours-gt-merging (a diagnostic that reads ground truth): φ2 as in ours on the over-segments merged by ground
+# truth, so ours-gt-merging − ours-v2 is the most a perfect matching and pruning step could add in Table I.
+job_ours-gt-merging() { evaluate ours-gt-merging --config "$OURS"; }
+job_evaluate3d() {  # Table II
+  skipped evaluate3d && return 0
   kept ours-matching 1 ours --config "$OURS" || step evaluate3d $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS"
-  for m in picie stego; do evaluate "$m"; done
 }
+job_generate-disjoint() {  # while v1-disjoint, uois-sim or sdmaskrcnn-sim is to run (neither skipped nor kept)
+  local need=0
+  skipped v1-disjoint || kept v1-disjoint 3 v1-disjoint --config "$SUP" --set train_data="$DISJOINT" || need=1
+  skipped uois-sim || kept uois-sim 3 uois-sim --set train_data="$DISJOINT" || need=1
+  skipped sdmaskrcnn-sim || kept sdmaskrcnn-sim 3 sdmaskrcnn-sim --set train_data="$DISJOINT" || need=1
+  [ $need = 0 ] || step generate-disjoint $BIN/generate_scenes --preset "$PRESET" "${OTHERS[@]}" --scenes 6 --seed 1 \
+    --out "$DISJOINT" --workers 2 --quiet
+}
+# Baselines B and D and V1, trained once on the disjoint-object set with ground truth, tested zero-shot.
+job_v1-disjoint() { evaluate v1-disjoint --config "$SUP" --set train_data="$DISJOINT"; }
+job_uois-sim() { evaluate uois-sim --set train_data="$DISJOINT"; }
+job_sdmaskrcnn-sim() { evaluate sdmaskrcnn-sim --set train_data="$DISJOINT"; }
+job_picie() { evaluate picie; }
+job_stego() { evaluate stego; }
 
-stream_a > "$RUN/stream-a.log" 2>&1 &
-A=$!
-stream_b > "$RUN/stream-b.log" 2>&1 &
-B=$!
-failed=0
-wait $A || failed=1
-wait $B || failed=1
-if [ $failed = 1 ]; then echo "scripts/benchmark.sh: a stream failed; see $RUN/stream-{a,b}.log" >&2; exit 1; fi
+. scripts/queue.sh
+# Priority order: the jobs that others wait for, then the longest first (calibrated, 2 cores: STEGO 93 min,
+# SD-MaskRCNN 80, the GT-merging diagnostic 70, ours 60, V4 55, PiCIE 49, supervised 42, V1 40, UOIS 23-38,
+# V3 35, the paper's pruning 35, Table II 15); the geometric runs fill the end.
+# (called plainly, not in a condition: bash ignores set -e inside a condition, and in the jobs it starts)
+run_queue 2 "$RUN/logs" ours-v2 generate-disjoint stego sdmaskrcnn-sim:generate-disjoint \
+  ours-gt-merging:ours-v2 ours:ours-v2 ours-v4:ours-v2 picie supervised v1-disjoint:generate-disjoint \
+  uois-sim:generate-disjoint ours-v3:ours-v2 ours-paper-pruning:ours-v2 evaluate3d:ours-v2 geometric
 printf 'total\t%d\t\t\n' $((SECONDS - START)) >> "$RUN/timings.tsv"
 
 [ "$CONFIRM" = 1 ] || $BIN/python -m selfseg.eval.leaderboard --results "$RESULTS" --out leaderboards/
