@@ -1,7 +1,7 @@
 """Inference speed (network + clustering, time split) and training throughput, on the CPU or a GPU.
 
     .venv/bin/python bench/bench_inference.py [--device cpu|cuda|auto] [--threads 2] [--repeats 5] [--batch 16]
-        [--before PATH] [--out bench/results/inference.json]
+        [--train-steps 3] [--parts inference,training] [--before PATH] [--out bench/results/inference.json]
 
 For each network preset and resolution it times the embedding network on a synthetic tabletop
 frame (8 flat-coloured objects, ~35 % foreground) as the methods run it (resized to the training
@@ -16,7 +16,8 @@ the clustering the methods use on that device (numpy on the CPU, torch on a GPU)
 ``fps_torch`` with each. Reports the fastest wall and CPU time of several runs, since the cores may be
 shared (load average recorded). Training throughput is full training steps (batch, crop and
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
-the speed settings (channels_last; channels_last and bf16 autocast), each with its speed-up over float32. Paper figure:
+the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
+speed-up over float32 (fastest and median step). ``--parts training`` times training alone. Paper figure:
 about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
 """
 from __future__ import annotations
@@ -136,22 +137,41 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
 
 
 def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device) -> dict:
+    """Training steps under each of TRAIN_VARIANTS, interleaved (one step of each in turn, ``steps`` rounds after a
+    warm-up round), so a change in the machine's load hits every variant alike: {variant: timings}, with the
+    speed-up of each variant's fastest step over float32's."""
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
-    torch.manual_seed(0)
-    net = new_embedding_net(net_cfg, train_cfg, device)
-    opt = torch.optim.AdamW(net.parameters(), lr=train_cfg.lr)
+    runs = {}
+    for variant, settings in TRAIN_VARIANTS.items():
+        cfg = replace(train_cfg, **settings)
+        torch.manual_seed(0)
+        net = new_embedding_net(net_cfg, cfg, device)
+        runs[variant] = (cfg, net, torch.optim.AdamW(net.parameters(), lr=cfg.lr), [], [])
 
-    def step(i: int = 0):
-        loss = step_loss(net, source, train_cfg, i, device)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-
-    t, c = best_time(step, steps, device)
-    return {"batch_size": train_cfg.batch_size, "crop": list(train_cfg.crop), "step_s": round(t, 3),
-            "step_cpu_s": round(c, 3), "images_per_s": round(train_cfg.batch_size / t, 2),
-            "steps_per_s": round(1 / t, 3), "minutes_per_800_steps": round(800 * t / 60, 2)}
+    for i in range(steps + 1):
+        for cfg, net, opt, wall, cpu in runs.values():
+            t, c = time.perf_counter(), time.process_time()
+            loss = step_loss(net, source, cfg, i, device)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            if i > 0:  # round 0 warms up
+                wall.append(time.perf_counter() - t)
+                cpu.append(time.process_time() - c)
+    out = {}
+    for variant, (cfg, _, _, wall, cpu) in runs.items():
+        t = float(np.min(wall))
+        out[variant] = {"batch_size": cfg.batch_size, "crop": list(cfg.crop), "step_s": round(t, 3),
+                        "step_median_s": round(float(np.median(wall)), 3), "step_cpu_s": round(float(np.min(cpu)), 3),
+                        "images_per_s": round(cfg.batch_size / t, 2), "steps_per_s": round(1 / t, 3),
+                        "minutes_per_800_steps": round(800 * t / 60, 2)}
+    for t in out.values():
+        t["speedup_vs_fp32"] = round(out["fp32"]["step_s"] / t["step_s"], 2)
+        t["median_speedup_vs_fp32"] = round(out["fp32"]["step_median_s"] / t["step_median_s"], 2)
+    return out
 
 
 def device_name(device: torch.device) -> str:
@@ -166,9 +186,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
-    ap.add_argument("--train-steps", type=int, default=3)
+    ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
+    ap.add_argument("--parts", default="inference,training", help="what to time: inference, training or both")
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
     args = ap.parse_args()
+    args.parts = set(args.parts.split(","))
+    if not args.parts or not args.parts <= {"inference", "training"}:
+        ap.error(f"--parts: inference, training or both, got {','.join(sorted(args.parts))}")
     load_at_start = os.getloadavg()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
@@ -181,16 +205,16 @@ def main() -> None:
     for name in ("default", "fast"):
         net_cfg = NetConfig.preset(name)
         print(f"net {name}: {to_dict(net_cfg)}", flush=True)
-        entry = {"net_config": to_dict(net_cfg),
-                 "inference": bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats, args.batch,
-                                              device)}
-        entry["training"] = {}
-        for variant, settings in TRAIN_VARIANTS.items():
-            t = entry["training"][variant] = bench_training(net_cfg, replace(train_cfg, **settings), args.train_steps,
-                                                            device)
-            t["speedup_vs_fp32"] = round(entry["training"]["fp32"]["step_s"] / t["step_s"], 2)
-            print(f"  training ({variant}): {t['images_per_s']} images/s, {t['minutes_per_800_steps']} min per 800 "
-                  f"steps, ×{t['speedup_vs_fp32']} (batch {train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
+        entry = {"net_config": to_dict(net_cfg)}
+        if "inference" in args.parts:
+            entry["inference"] = bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats, args.batch,
+                                                 device)
+        if "training" in args.parts:
+            entry["training"] = bench_training(net_cfg, train_cfg, args.train_steps, device)
+            for variant, t in entry["training"].items():
+                print(f"  training ({variant}): {t['images_per_s']} images/s, {t['minutes_per_800_steps']} min per "
+                      f"800 steps, ×{t['speedup_vs_fp32']} (median ×{t['median_speedup_vs_fp32']}; batch "
+                      f"{train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
         results["nets"][name] = entry
     if args.before is not None:
         results["before"] = read_json(args.before)
