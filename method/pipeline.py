@@ -60,7 +60,7 @@ SEGMAPS_DIR = "segmaps"  # overseg: the segments projected into every frame (LAB
 OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts; timings (s)
 PHI1_DIR = "phi1/{key_hash}"  # in the stage root: φ1 trained on the over-segments of a set of videos
 PHI1_FEATURES_NPY = "features-{key_hash}/{video_id}.npy"  # in a PHI1_DIR: φ1 feature per segment of a training
-# video (n_segments × D, unit vectors); the hash covers the feature settings, the video's overseg stage, the device
+# video (n_segments × D, unit vectors); the hash covers the feature settings and the device
 FEATURES_NPY = "features/{video_id}.npy"  # pseudo: φ1 feature per segment (n_segments × D, unit vectors)
 LABELS_NPY = "labels/{video_id}.npy"  # pseudo: object pseudo-label per reconstructed point (−1 = none)
 PSEUDO_MAPS_DIR = "maps/{video_id}"  # pseudo: the pseudo-labels projected into every frame (LABEL_MAP_PNG files)
@@ -270,14 +270,15 @@ class Ours(EmbeddingMethodBase):
             return self.pseudo_dir()
         net = None
         scenes, recons = [], []
+        # φ1's folder hash covers its training videos' over-segmentation; this one the features' own settings
+        feat_hash = hash_json({"feature_stride": cfg.feature_stride, "image_size": cfg.phi1_train.image_size,
+                               "crop_margin": cfg.phi1_train.crop_margin, "mask": cfg.phi1_train.mask_background,
+                               "device": self._device.type})
         for v in tqdm(videos, desc="φ1 segment features", unit="video"):
             seg_dir = cache.path("overseg", v.video_id)
             graph = SegmentGraph.load(seg_dir / SEGMENTS_NPZ)
             recons.append(load_recon(cache.path("recon", v.video_id)))
-            feat_key = {"feature_stride": cfg.feature_stride, "image_size": cfg.phi1_train.image_size,
-                        "crop_margin": cfg.phi1_train.crop_margin, "mask": cfg.phi1_train.mask_background,
-                        "overseg": cache.key_hash("overseg", v.video_id), "device": self._device.type}
-            feat_file = phi1.parent / PHI1_FEATURES_NPY.format(key_hash=hash_json(feat_key), video_id=v.video_id)
+            feat_file = phi1.parent / PHI1_FEATURES_NPY.format(key_hash=feat_hash, video_id=v.video_id)
             if feat_file.is_file():  # computed by another method or fold with this φ1
                 feats = np.load(feat_file)
             else:

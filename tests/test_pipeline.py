@@ -79,7 +79,7 @@ def test_ours_end_to_end_without_ground_truth(dense_dataset, tmp_path):
 
     # V3 matches with the same φ1: it reads the φ1 segment features ours computed instead of embedding again
     feature_files = {p: p.stat().st_mtime_ns for p in v2.weights_path.parent.glob("features-*/*.npy")}
-    assert sorted(p.stem for p in feature_files) == ds.video_ids[:2]
+    assert sorted(p.stem for p in feature_files) == ds.video_ids[:2] and len({p.parent for p in feature_files}) == 1
     v3 = OursV3(load_config(OursV3Config, overrides=FAST), tmp_path / "work" / "ours-v3" / "analytic" / "fold0")
     v3.stage_root = stage_root
     with ground_truth_forbidden(dense_dataset):
