@@ -259,8 +259,6 @@ class Ours(EmbeddingMethodBase):
 
     def pseudo_labels(self, videos: list[Video], cache: StageCache, phi1: Path) -> Path:
         """φ1 segment features, cross-scene matching and merged pseudo-labels of the training videos (cached)."""
-        from selfseg.method.features import segment_features
-
         cfg = self.config
         out = StageCache(self.workdir / PSEUDO_CACHE_DIR)
         key = {"version": STAGE_VERSION, "phi1": str(phi1), "pseudo": to_dict(cfg.pseudo),
@@ -268,32 +266,11 @@ class Ours(EmbeddingMethodBase):
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
         if out.is_valid(*PSEUDO_STAGE, key):
             return self.pseudo_dir()
-        net = None
         scenes, recons = [], []
-        # φ1's folder hash covers its training videos' over-segmentation; this one the features' own settings
-        feat_hash = hash_json({"feature_stride": cfg.feature_stride, "image_size": cfg.phi1_train.image_size,
-                               "crop_margin": cfg.phi1_train.crop_margin, "mask": cfg.phi1_train.mask_background,
-                               "device": self._device.type})
         for v in tqdm(videos, desc="φ1 segment features", unit="video"):
-            seg_dir = cache.path("overseg", v.video_id)
-            graph = SegmentGraph.load(seg_dir / SEGMENTS_NPZ)
+            graph = SegmentGraph.load(cache.path("overseg", v.video_id) / SEGMENTS_NPZ)
             recons.append(load_recon(cache.path("recon", v.video_id)))
-            feat_file = phi1.parent / PHI1_FEATURES_NPY.format(key_hash=feat_hash, video_id=v.video_id)
-            if feat_file.is_file():  # computed by another method or fold with this φ1
-                feats = np.load(feat_file)
-            else:
-                frames = v.frame_ids[::cfg.feature_stride]
-                segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f))
-                           for f in frames}
-                fgs = {f: recons[-1].fg_mask(f) for f in frames} if cfg.phi1_train.mask_background else None
-                if net is None:
-                    net = load_embedding_net(phi1, self._device)
-                feats, _seen = segment_features(net, v, frames, segmaps, graph.n_segments, self._device,
-                                                image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
-                                                fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
-                buf = io.BytesIO()
-                np.save(buf, feats)
-                atomic_write_bytes(feat_file, buf.getvalue())
+            feats = self.phi1_features(v, graph, recons[-1], cache, phi1)
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write(*PSEUDO_STAGE, key) as tmp:
             labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
@@ -304,6 +281,33 @@ class Ours(EmbeddingMethodBase):
                 write_label_maps(tmp / PSEUDO_MAPS_DIR.format(video_id=v.video_id), v, scene.points_w,
                                  labels[v.video_id], rec.T_world_cam, cfg.projection)
         return self.pseudo_dir()
+
+    def phi1_features(self, video: Video, graph: SegmentGraph, recon: ReconStage, cache: StageCache,
+                      phi1: Path) -> np.ndarray:
+        """φ1 feature per segment of ``video`` (n_segments × D, unit vectors), read from the φ1 folder when another
+        method has already computed it with this φ1 (PHI1_FEATURES_NPY), else computed and written there."""
+        from selfseg.method.features import segment_features
+
+        cfg = self.config
+        # φ1's folder hash covers its training videos' over-segmentation; this hash the features' own settings
+        key = {"feature_stride": cfg.feature_stride, "image_size": cfg.phi1_train.image_size,
+               "crop_margin": cfg.phi1_train.crop_margin, "mask": cfg.phi1_train.mask_background,
+               "device": self._device.type}
+        path = phi1.parent / PHI1_FEATURES_NPY.format(key_hash=hash_json(key), video_id=video.video_id)
+        if path.is_file():
+            return np.load(path)
+        seg_dir = cache.path("overseg", video.video_id)
+        frames = video.frame_ids[::cfg.feature_stride]
+        segmaps = {f: read_label_map(seg_dir / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=f)) for f in frames}
+        fgs = {f: recon.fg_mask(f) for f in frames} if cfg.phi1_train.mask_background else None
+        net = load_embedding_net(phi1, self._device)
+        feats, _seen = segment_features(net, video, frames, segmaps, graph.n_segments, self._device,
+                                        image_size=cfg.phi1_train.image_size,  # φ1 at its training scale
+                                        fg_crop_margin=cfg.phi1_train.crop_margin, fg_masks=fgs)
+        buf = io.BytesIO()
+        np.save(buf, feats)
+        atomic_write_bytes(path, buf.getvalue())
+        return feats
 
     def pseudo_dir(self) -> Path:
         """The folder of the pseudo stage in the workdir (features, matches.json, diagnostics.json, labels, maps)."""
