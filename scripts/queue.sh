@@ -1,4 +1,4 @@
-# run_queue SLOTS LOGDIR SPEC...: a job queue for bash scripts (sourced by scripts/benchmark.sh).
+# run_queue SLOTS LOGDIR SPEC...: a job queue for bash scripts (sourced by scripts/benchmark.sh and scripts/demo.sh).
 # Each SPEC is NAME or NAME:DEP,DEP,...; job NAME is the shell function job_NAME, its output goes to LOGDIR/NAME.log.
 # At most SLOTS jobs run at once. Whenever a slot is free, the first job in SPEC order whose dependencies have all
 # finished starts, so SPEC lists the jobs longest first (after those that gate others). After a failure no new job
