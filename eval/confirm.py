@@ -4,7 +4,8 @@
     python -m selfseg.eval.confirm seeds --preset calibrated         # the fresh seeds, one per line
     python -m selfseg.eval.confirm check --preset calibrated         # may this checkout run them? (exit 2: no)
     python -m selfseg.eval.confirm board --preset calibrated --runs runs/confirm \\
-        --dev "seed 0=leaderboards/results/calibrated"               # the section of leaderboards/calibrated.md
+        --dev "seed 0=leaderboards/results/calibrated" [--noisy-runs runs/confirm-noisy]
+                                                                     # the section of leaderboards/calibrated.md
     python -m selfseg.eval.confirm compare --results RESULTS --b ours-v2 --b depth-clustering
                                                                      # one seed's paired claims, with verdicts
 
@@ -21,6 +22,11 @@ frame, and paired differences ``ours`` − each baseline and ablation with boots
 test videos (:mod:`selfseg.eval.pooled`); a claim holds only when its CI excludes 0. Table II per seed too.
 The section sits between its own markers in ``leaderboards/<preset>.md``, so the leaderboard builder
 (:mod:`selfseg.eval.leaderboard`) leaves it alone.
+
+**Noise.** ``board --noisy-runs DIR`` adds the same fresh seeds of the preset's noisy variant (``<preset>-noisy``:
+the same scenes with the depth-noise model on; ``DIR/seed-<S>/results``, run from the freeze with its configs,
+so nothing is tuned on noise): each method's drop exact − noisy paired per test video, ``ours``'s claims under
+noise, and Table II exact → noisy per seed.
 """
 from __future__ import annotations
 
@@ -33,7 +39,7 @@ from pathlib import Path
 
 from selfseg.eval.aggregate import fmt
 from selfseg.eval.leaderboard import load_results, replace_generated
-from selfseg.eval.pooled import Seed, paired, pooled_videos, score
+from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
 from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,13 +137,9 @@ def _only_dataset(results: Path) -> dict:
     return next(iter(found.values()))
 
 
-def _seeds(rec: dict, runs: Path, dev: list[tuple[str, Path]]) -> tuple[list[Seed], list[Seed], dict]:
-    """(development seeds, fresh seeds with results, {label: 3-D groups}); fresh records are checked."""
-    dev_seeds, fresh, three_d = [], [], {}
-    for label, results in dev:
-        groups = _only_dataset(results)
-        dev_seeds.append(Seed(label, True, {n: r for (t, n), r in groups.items() if t == "2d"}))
-        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
+    """(the fresh seeds with results under ``runs``, {label: 3-D groups}); every record is checked."""
+    fresh, three_d = [], {}
     for s in rec["seeds"]:
         results = runs / SEED_RESULTS_DIR.format(seed=s)
         if not results.is_dir():
@@ -147,7 +149,18 @@ def _seeds(rec: dict, runs: Path, dev: list[tuple[str, Path]]) -> tuple[list[See
         label = f"seed {s}"
         fresh.append(Seed(label, False, {n: r for (t, n), r in groups.items() if t == "2d"}))
         three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
-    return dev_seeds, fresh, three_d
+    return fresh, three_d
+
+
+def _seeds(rec: dict, runs: Path, dev: list[tuple[str, Path]]) -> tuple[list[Seed], list[Seed], dict]:
+    """(development seeds, fresh seeds with results, {label: 3-D groups}); fresh records are checked."""
+    dev_seeds, three_d = [], {}
+    for label, results in dev:
+        groups = _only_dataset(results)
+        dev_seeds.append(Seed(label, True, {n: r for (t, n), r in groups.items() if t == "2d"}))
+        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+    fresh, fresh_3d = _fresh(rec, runs)
+    return dev_seeds, fresh, {**three_d, **fresh_3d}
 
 
 def _cell(videos: dict) -> str:
@@ -157,8 +170,51 @@ def _cell(videos: dict) -> str:
     return f"{fmt(s['mean'])} ({fmt(s['ci95'][0])}–{fmt(s['ci95'][1])})"
 
 
-def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d: dict) -> str:
-    """The confirmation section (between :data:`BEGIN` and :data:`END`)."""
+def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed], noisy_3d: dict) -> list[str]:
+    """The noisy-depth subsection: each method on the fresh seeds with exact and with noisy depth (same scenes,
+    RGB, masks and poses), the drop exact − noisy paired per test video, and ``ours``'s claims under noise."""
+    labels = {s.label for s in noisy}
+    exact = [s for s in fresh if s.label in labels]
+    lines = ["", f"### The same seeds with noisy depth ({rec['preset']}-noisy)", "",
+             f"The fresh seeds again with the depth-noise model on (`--depth-noise kinect`: the same scenes, RGB, "
+             f"masks and poses, the depth a Kinect v1 would measure), run with the same frozen configs, never tuned on "
+             f"noise ({len(noisy)} of {len(rec['seeds'])} seeds finished). Drop = exact − noisy IoU per test video "
+             "(same frames), 95 % CI by bootstrap over videos:", "",
+             "| method | exact | noisy | drop | 95 % CI | videos worse with noise | verdict |", "|---|---|---|---|---|---|---|"]
+    names = [n for n in ("ours", *BASELINES, *ABLATIONS) if pooled_videos(noisy, n) and pooled_videos(exact, n)]
+    for n in names:
+        a, b = pooled_videos(exact, n), pooled_videos(noisy, n)
+        d = paired(a, b)
+        common = set(a) & set(b)
+        verdict = {"holds": "drops", "reversed": "rises"}.get(d["verdict"], d["verdict"])
+        lines.append(f"| {n} | {fmt(frame_mean({v: a[v] for v in common}))} | {fmt(frame_mean({v: b[v] for v in common}))} "
+                     f"| {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | {d['wins']} of {d['n_videos']} "
+                     f"| {verdict} |")
+    ours = pooled_videos(noisy, "ours")
+    claims = [(o, paired(ours, pooled_videos(noisy, o))) for o in (*BASELINES, *ABLATIONS)
+              if ours and pooled_videos(noisy, o)]
+    if claims:
+        lines += ["", "`ours`'s claims with noisy depth (same protocol):", "",
+                  "| claim | mean | 95 % CI | videos A > B | verdict |", "|---|---|---|---|---|"]
+        lines += [f"| ours − {o} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
+                  f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |" for o, d in claims]
+    t2 = [n for n in TABLE2_ROWS if any(n in noisy_3d.get(s.label, {}) for s in noisy)]
+    if t2:
+        lines += ["", "Table II IoU, exact → noisy depth, per seed:", "",
+                  "| 3-D segmentation | " + " | ".join(s.label for s in noisy) + " |", "|---|" + "---|" * len(noisy)]
+        for n in t2:
+            cells = []
+            for s in noisy:
+                e, q = three_d.get(s.label, {}).get(n), noisy_3d.get(s.label, {}).get(n)
+                cells.append(f"{fmt(e[0]['metrics']['IoU']) if e else '—'} → {fmt(q[0]['metrics']['IoU']) if q else '—'}")
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d: dict,
+                   noise: list[str] | None = None) -> str:
+    """The confirmation section (between :data:`BEGIN` and :data:`END`), with :func:`noise_markdown`'s lines
+    when the noisy variant has run."""
     seeds = dev_seeds + fresh
     head = ([f"{s.label} (development)" for s in dev_seeds] + [s.label for s in fresh]
             + [f"pooled, {len(fresh)} fresh seeds"])
@@ -208,13 +264,18 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
                 recs = three_d.get(label, {}).get(n)
                 cells.append(fmt(recs[0]["metrics"]["IoU"]) if recs else "—")
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
-    return "\n".join(lines + ["", END]) + "\n"
+    return "\n".join(lines + (noise or []) + ["", END]) + "\n"
 
 
-def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path) -> Path:
-    """Write the confirmation section of freeze ``rec`` into ``out`` (text outside its markers is kept)."""
+def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path, noisy_runs: Path | None = None) -> Path:
+    """Write the confirmation section of freeze ``rec`` into ``out`` (text outside its markers is kept);
+    ``noisy_runs``: the same fresh seeds of the preset's noisy variant, run from the freeze (same layout)."""
     dev_seeds, fresh, three_d = _seeds(rec, runs, dev)
-    text = board_markdown(rec, dev_seeds, fresh, three_d)
+    noise = None
+    if noisy_runs is not None:
+        noisy, noisy_3d = _fresh(rec, noisy_runs)
+        noise = noise_markdown(rec, fresh, three_d, noisy, noisy_3d) if noisy else None
+    text = board_markdown(rec, dev_seeds, fresh, three_d, noise)
     atomic_write_text(out, replace_generated(out.read_text() if out.is_file() else None, text,
                                              f"Leaderboard: {rec['preset']}", BEGIN, END))
     return out
@@ -254,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="board: the folder holding each fresh seed's run (seed-<S>/results)")
     p.add_argument("--dev", type=_dev_arg, action="append", default=[], metavar="LABEL=RESULTS",
                    help="board: a development seed's results folder, shown beside the fresh seeds (repeatable)")
+    p.add_argument("--noisy-runs", type=Path,
+                   help="board: the same fresh seeds of the preset's noisy variant (seed-<S>/results), run from the freeze")
     p.add_argument("--out", type=Path, help="board: the leaderboard page (default leaderboards/<preset>.md)")
     p.add_argument("--results", type=Path, help="compare: one dataset's results folder (evaluate --out)")
     p.add_argument("--a", default="ours", help="compare: the run whose claims are tested (default ours)")
@@ -275,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
             print("\n".join(compare_lines(args.results, args.a, args.b)))
         else:
             print(board(read_freeze(args.preset), args.runs, args.dev,
-                        args.out or ROOT / "leaderboards" / f"{args.preset}.md"))
+                        args.out or ROOT / "leaderboards" / f"{args.preset}.md", args.noisy_runs))
     except (FreezeError, FileFormatError, FileNotFoundError) as e:
         print(f"confirm: error: {e}", file=sys.stderr)
         return 2

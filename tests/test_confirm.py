@@ -87,6 +87,31 @@ def test_compare_gives_one_seeds_paired_claims_with_verdicts(runs, capsys):
     assert capsys.readouterr().err.strip() == f"confirm: error: {results}: no 2-D results of 'ours-v2'"
 
 
+def test_board_reports_the_drop_with_noisy_depth_paired_per_video(runs, tmp_path):
+    """The noisy variant of one fresh seed (here: `ours` becomes one segment, `depth-clustering` stays one
+    segment): `ours` drops on every video, depth-clustering does not move, and the claims are retested."""
+    root, rec = runs
+    noisy_root = tmp_path / "noisy"
+    exact = root / SEED_RESULTS_DIR.format(seed=101)
+    for path in exact.glob("scores/*/depth-clustering/fold*.json"):  # one segment's records, under both names
+        for name in ("ours", "depth-clustering"):
+            to = noisy_root / SEED_RESULTS_DIR.format(seed=101) / path.relative_to(exact).parent.parent / name / path.name
+            to.parent.mkdir(parents=True, exist_ok=True)
+            write_json(to, {**read_json(path), "name": name})
+    page = tmp_path / "analytic.md"
+    board(rec, root, [], page, noisy_root)
+    lines = page.read_text().splitlines()
+    assert "### The same seeds with noisy depth (analytic-noisy)" in lines and "(1 of 3 seeds finished)" in page.read_text()
+    ours = next(line for line in lines if line.startswith("| ours | 1.000 | "))
+    assert ours.endswith("| 3 of 3 | drops |")  # paired over seed 101's videos only, not seed 202's
+    dc = next(line for line in lines if line.startswith("| depth-clustering | ") and "| +0.000 |" in line)
+    assert dc.endswith("| 0 of 3 | inside the noise |")
+    noisy_claim = [line for line in lines if line.startswith("| ours − depth-clustering")][-1]
+    assert "| 0 of 3 | **inside the noise** |" in noisy_claim
+    board(rec, root, [], page)  # without the noisy runs the subsection goes
+    assert "noisy depth" not in page.read_text()
+
+
 def test_board_refuses_a_record_from_code_that_moved_since_the_freeze(runs, tmp_path):
     root, rec = runs
     first = _git("rev-list", "--max-parents=0", "HEAD").splitlines()[0]
