@@ -41,15 +41,10 @@ SUP=$(config supervised)
 OURS=$(config ours)
 mkdir -p "$RUN"
 START=$SECONDS
-# The disjoint-object training set of baselines B and D and of v1-disjoint: objects the preset's scenes never use.
-case $PRESET in
-  benchmark)  # builtin objects outside generate/presets.py BENCHMARK_POOL
-    OTHERS=(--object-pool box_large,box_small,book,cube,can_soup,chips_tube,jar,ball,egg,pill_tube,flowerpot,hex_box,cheese_wedge,pitcher,drill) ;;
-  calibrated|cluttered|calibrated-noisy|cluttered-noisy)  # the builtin library without the duck, the one object
-    # it shares with the paper library; in the preset's own layout (cluttered: piles) and depth (noisy or exact)
-    OTHERS=(--library builtin --object-pool box_large,box_medium,box_small,book,cube,can_soda,can_soup,chips_tube,jar,ball,egg,pill_tube,flowerpot,hex_box,cheese_wedge,lamp,dumbbell,mug,bowl,bottle,pitcher,hammer,banana,drill) ;;
-  *) echo "scripts/benchmark.sh: unknown preset '$PRESET' (benchmark, calibrated, cluttered, or calibrated-noisy, cluttered-noisy)" >&2; exit 2 ;;
-esac
+# The disjoint-object training set of baselines B and D and of v1-disjoint (scripts/disjoint_pool.sh).
+. scripts/disjoint_pool.sh
+disjoint_pool "$PRESET" || {
+  echo "scripts/benchmark.sh: unknown preset '$PRESET' (benchmark, calibrated, cluttered, or calibrated-noisy, cluttered-noisy)" >&2; exit 2; }
 
 step() {  # step NAME COMMAND...: run it; append "NAME<TAB>wall s<TAB>CPU s<TAB>peak MB" to timings.tsv (CPU: user +
   # system of the command and every process it waited for; peak: the largest resident set among them)
