@@ -137,6 +137,12 @@ def _only_dataset(results: Path) -> dict:
     return next(iter(found.values()))
 
 
+def _split(label: str, development: bool, groups: dict) -> tuple[Seed, dict]:
+    """One seed's results (:func:`load_results` groups of one dataset) as its 2-D :class:`Seed` and its 3-D runs."""
+    return (Seed(label, development, {n: r for (t, n), r in groups.items() if t == "2d"}),
+            {n: r for (t, n), r in groups.items() if t == "3d"})
+
+
 def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
     """(the fresh seeds with results under ``runs``, {label: 3-D groups}); every record is checked."""
     fresh, three_d = [], {}
@@ -146,9 +152,8 @@ def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
             continue
         groups = _only_dataset(results)
         _check_records(rec, s, groups)
-        label = f"seed {s}"
-        fresh.append(Seed(label, False, {n: r for (t, n), r in groups.items() if t == "2d"}))
-        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+        seed, three_d[seed.label] = _split(f"seed {s}", False, groups)
+        fresh.append(seed)
     return fresh, three_d
 
 
@@ -156,9 +161,8 @@ def _seeds(rec: dict, runs: Path, dev: list[tuple[str, Path]]) -> tuple[list[See
     """(development seeds, fresh seeds with results, {label: 3-D groups}); fresh records are checked."""
     dev_seeds, three_d = [], {}
     for label, results in dev:
-        groups = _only_dataset(results)
-        dev_seeds.append(Seed(label, True, {n: r for (t, n), r in groups.items() if t == "2d"}))
-        three_d[label] = {n: r for (t, n), r in groups.items() if t == "3d"}
+        seed, three_d[label] = _split(label, True, _only_dataset(results))
+        dev_seeds.append(seed)
     fresh, fresh_3d = _fresh(rec, runs)
     return dev_seeds, fresh, {**three_d, **fresh_3d}
 
@@ -284,7 +288,7 @@ def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path, noisy_r
 def compare_lines(results: Path, a: str, others: list[str]) -> list[str]:
     """``a`` − each of ``others`` on one results folder's test videos (one seed), as :func:`paired` reads it."""
     groups = _only_dataset(results)
-    seed = Seed("", False, {n: r for (t, n), r in groups.items() if t == "2d"})
+    seed, _ = _split("", False, groups)
     mine = pooled_videos([seed], a)
     if not mine:
         raise FileFormatError(f"{results}: no 2-D results of {a!r}")
