@@ -17,7 +17,8 @@ the clustering the methods use on that device (numpy on the CPU, torch on a GPU)
 shared (load average recorded). Training throughput is full training steps (batch, crop and
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
-speed-up over float32 (fastest and median step). ``--parts training`` times training alone. Paper figure:
+speed-up over float32 (fastest and median step). On CUDA the network and the mode finding run as CUDA graphs
+(``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``). ``--parts training`` times training alone. Paper figure:
 about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
 """
 from __future__ import annotations
@@ -36,6 +37,7 @@ from common import bench_parser, write_result
 from selfseg.config import to_dict
 from selfseg.eval.provenance import cpu_model
 from selfseg.fileio import read_json
+from selfseg.method import cuda_graphs
 from selfseg.method.features import embed_frames
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
@@ -113,6 +115,11 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
         t_torch_batch, _ = best_time(lambda: cluster_frames(embs_dev, masks, cluster_cfg), repeats, device)
         t_components, _ = best_time(lambda: absorb_small(split_components(inst, cluster_cfg.connectivity),
                                                          cluster_cfg.min_component_px), repeats, device)
+        if device.type == "cuda":  # the same without CUDA graphs: kernels launched one by one from Python
+            cuda_graphs.ENABLED = False
+            t_net_eager, _ = best_time(lambda: embed_frames(net, [rgb], device, image_size), repeats, device)
+            t_torch_eager, _ = best_time(lambda: cluster_frame(emb_dev, fg, cluster_cfg), repeats, device)
+            cuda_graphs.ENABLED = True
         pred, pred_torch = cluster_frame(emb, fg, cluster_cfg), cluster_frame(emb_dev, fg, cluster_cfg)
         t_cluster = t_numpy if device.type == "cpu" else t_torch
         row = {"network_s": t_net, "clustering_s": t_cluster, "total_s": t_net + t_cluster,
@@ -122,6 +129,9 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
                "clustering_torch_s": t_torch, "clustering_torch_batched_s_per_frame": t_torch_batch / batch,
                "components_s": t_components, "clustering_share": t_cluster / (t_net + t_cluster),
                "fps_numpy": 1 / (t_net + t_numpy), "fps_torch": 1 / (t_net + t_torch)}
+        if device.type == "cuda":
+            row |= {"network_eager_s": t_net_eager, "clustering_torch_eager_s": t_torch_eager,
+                    "fps_eager": 1 / (t_net_eager + t_torch_eager)}
         rounded = {k: round(v, 5 if k.endswith(("_s", "_frame")) else 3) for k, v in row.items()}
         out[f"{w}x{h}"] = rounded | {
             "fg_pixels": int(fg.sum()), "objects": int(inst.max()),
@@ -133,6 +143,9 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
               f"{t_components * 1000:.1f} ms) = {1 / (t_net + t_cluster):.2f} fps "
               f"({out[f'{w}x{h}']['instances_found']} instances of {inst.max()}); CPU time "
               f"{c_net * 1000:.0f} + {c_numpy * 1000:.0f} ms", flush=True)
+        if device.type == "cuda":
+            print(f"    without CUDA graphs: network {t_net_eager * 1000:.1f} ms + clustering {t_torch_eager * 1000:.1f} ms "
+                  f"= {row['fps_eager']:.1f} fps", flush=True)
     return out
 
 

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from selfseg.dataset import Video
+from selfseg.method.cuda_graphs import GraphedFunction
 from selfseg.method.network import RGB_MEAN, EmbeddingNet
 
 
@@ -46,6 +47,18 @@ def forward(net: EmbeddingNet, x: torch.Tensor, flip: bool = False) -> torch.Ten
     return F.normalize(both[:len(x)] + both[len(x):].flip(-1), dim=1)
 
 
+def graphed_forward(net: EmbeddingNet, flip: bool = False) -> GraphedFunction:
+    """:func:`forward` of an evaluation-mode ``net`` as a CUDA graph per input shape (on other devices, or with
+    gradients on, a plain call). The graphs belong to the net and are keyed by where its weights are, so moving
+    the net never replays a stale graph; weights changed in place are read by the next replay."""
+    graphs = net.__dict__.setdefault("_cuda_graphs", {})
+    key = (flip, tuple(p.data_ptr() for p in net.parameters()))
+    if key not in graphs:
+        graphs.clear()
+        graphs[key] = GraphedFunction(lambda x: forward(net, x, flip))
+    return graphs[key]
+
+
 @torch.inference_mode()
 def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0,
                  boxes: list[tuple[int, int, int, int] | None] | None = None,
@@ -60,6 +73,8 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     ``fg_masks`` (``TrainConfig.mask_background``): bool H×W per frame; the network sees RGB_MEAN
     outside it (:func:`mask_input`, before and after resizing, as augment does).
     ``flip``: each embedding is averaged with that of the mirrored frame (:func:`forward`).
+    Without boxes (one input shape per video) an evaluation-mode net runs as a CUDA graph on a GPU
+    (:func:`graphed_forward`); crops differ in shape from frame to frame, so they run without graphs.
     """
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
@@ -67,17 +82,24 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
         for i, (rgb, box) in enumerate(zip(rgbs, boxes)):
             y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
             fg = None if fg_masks is None else [np.ascontiguousarray(fg_masks[i][y0:y1, x0:x1])]
-            out[i, :, y0:y1, x0:x1] = embed_frames(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device,
-                                                   image_size, fg_masks=fg, flip=flip)[0]
+            out[i, :, y0:y1, x0:x1] = _embed(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device, image_size, fg,
+                                             lambda x: forward(net, x, flip))[0]
         return out
+    run = graphed_forward(net, flip) if not net.training else (lambda x: forward(net, x, flip))
+    return _embed(net, rgbs, device, image_size, fg_masks, run)
+
+
+def _embed(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int,
+           fg_masks: list[np.ndarray] | None, run) -> torch.Tensor:
+    """:func:`embed_frames` of whole frames, the network called as ``run(x)``."""
     x = mask_input(torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0), fg_masks)
     h, w = x.shape[2:]
     if image_size <= 0 or max(h, w) == image_size:
-        return forward(net, x, flip)
+        return run(x)
     s = image_size / max(h, w)
     small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
                           align_corners=False, antialias=s < 1)
-    return F.normalize(F.interpolate(forward(net, mask_input(small, fg_masks), flip), size=(h, w), mode="bilinear",
+    return F.normalize(F.interpolate(run(mask_input(small, fg_masks)), size=(h, w), mode="bilinear",
                                      align_corners=False), dim=1)
 
 

@@ -17,19 +17,23 @@ tensors of any device (:func:`_namespace`), in float32 either way; :func:`cluste
 type of its embeddings. numpy arrays give the project's reference results; a tensor on the CPU gives the
 same labels on the test fixtures (float rounding differs, so a pixel equidistant between two modes may
 differ). :func:`cluster_frames` runs the mode finding of several frames in one batch on the tensors'
-device (frames padded to the largest, padding weighs zero). Merging the few dozen modes of a frame, the
+device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels`` and replayed as one
+CUDA graph, since a frame's mode finding is hundreds of small kernels. Merging the few dozen modes of a frame, the
 connected-component split and small-part absorption run on the host (cv2/numpy): about 2 ms of a
 320×240 frame and 8–12 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import torch
+from scipy import ndimage
+
+from selfseg.method.cuda_graphs import GraphedFunction
 
 
 @dataclass
@@ -65,7 +69,7 @@ def _namespace(a):
         return np
     return SimpleNamespace(
         float32=torch.float32, inf=math.inf, linalg=torch.linalg, abs=torch.abs, amax=torch.amax,
-        argmax=torch.argmax, bincount=torch.bincount, exp=torch.exp, minimum=torch.minimum,
+        arange=lambda n: torch.arange(n, device=a.device), argmax=torch.argmax, bincount=torch.bincount, exp=torch.exp, minimum=torch.minimum,
         maximum=torch.clamp_min, ones_like=torch.ones_like, stack=torch.stack, where=torch.where,
         zeros_like=torch.zeros_like,
         asarray=lambda x, dtype=None: torch.as_tensor(x, dtype=dtype, device=a.device),
@@ -102,7 +106,7 @@ def _farthest_points(z, x, valid, n: int, kappa: float, sigma: float, xp):
     reading its results back (no device synchronisation).
     """
     count = valid.sum(-1)
-    rows = xp.asarray(np.arange(len(z)))
+    rows = xp.arange(len(z))
 
     def distance_to(i):  # B×N: −log K to each frame's point i
         return -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa, sigma,
@@ -118,13 +122,14 @@ def _farthest_points(z, x, valid, n: int, kappa: float, sigma: float, xp):
     return xp.stack(seeds, axis=-1), xp.stack(taken, axis=-1)
 
 
-def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp):
+def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp, early_stop: bool = True):
     """Mean-shift of every seed (B×S indices) over its frame's points → (modes B×S×D, positions B×S×2 or None).
 
-    ``pad`` as in :func:`_kernel`. A frame stops once its taken seeds move less than 1e-4 in one iteration
-    (embedding or position)."""
+    ``pad`` as in :func:`_kernel`. A frame's modes stop moving once its taken seeds move less than 1e-4 in one
+    iteration (embedding or position); with ``early_stop`` the loop ends when every frame has stopped (a host
+    synchronisation per iteration), else it runs all ``cfg.iters`` iterations, which gives the same modes."""
     sigma = float(cfg.spatial_sigma)
-    rows = xp.asarray(np.arange(len(z)))[:, None]
+    rows = xp.arange(len(z))[:, None]
     mu = z[rows, seeds]
     p = None if x is None else x[rows, seeds]
     moving = xp.ones_like(taken[:, 0])
@@ -139,9 +144,31 @@ def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp):
             shift = xp.maximum(shift, xp.amax(xp.abs(new_p - p), axis=-1))
             p = xp.where(moving[:, None, None], new_p, p)
         moving = moving & (xp.amax(xp.where(taken, shift, 0.0), axis=-1) >= 1e-4)
-        if not moving.any():
+        if early_stop and not moving.any():
             break
     return mu, p
+
+
+def _find_modes(z, x, valid, pad, cfg: MeanShiftConfig, xp, early_stop: bool = True):
+    """Seeds, mean-shift and each mode's kernel density for B frames of points (z B×N×D, x B×N×2 or None, valid
+    B×N bool, ``pad`` as in :func:`_kernel`) → (modes B×S×D, positions B×S×2 or None, density B×S, taken B×S).
+    Without ``early_stop`` nothing synchronises with the host, so a CUDA graph can capture it."""
+    sigma = float(cfg.spatial_sigma)
+    seeds, taken = _farthest_points(z, x, valid, cfg.n_seeds, cfg.kappa, sigma, xp)
+    mu, p = _shift_modes(z, x, pad, seeds, taken, cfg, xp, early_stop)
+    return mu, p, _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp).sum(-2), taken
+
+
+_MODE_GRAPHS: dict[tuple, GraphedFunction] = {}
+
+
+def _graphed_find_modes(cfg: MeanShiftConfig) -> GraphedFunction:
+    """:func:`_find_modes` of torch tensors for ``cfg``, without early stopping, as a CUDA graph per batch size."""
+    key = astuple(cfg)
+    if key not in _MODE_GRAPHS:
+        _MODE_GRAPHS[key] = GraphedFunction(
+            lambda z, x, valid, pad: _find_modes(z, x, valid, pad, cfg, _namespace(z), early_stop=False))
+    return _MODE_GRAPHS[key]
 
 
 def _merge_modes(mu: np.ndarray, p: np.ndarray | None, density: np.ndarray, cfg: MeanShiftConfig) -> np.ndarray:
@@ -162,49 +189,57 @@ def _merge_modes(mu: np.ndarray, p: np.ndarray | None, density: np.ndarray, cfg:
     return group
 
 
-def _stack_padded(arrays: list, xp):
-    """B arrays of N_i rows → B×max(N_i)×… with zero rows after each array's (B = 1: a view)."""
-    if len(arrays) == 1:
+def _stack_padded(arrays: list, xp, width: int = 0):
+    """B arrays of N_i rows → B×max(N_i, width)×… with zero rows after each array's (B = 1 and no padding: a view)."""
+    n = max(width, max(len(a) for a in arrays))
+    if len(arrays) == 1 and len(arrays[0]) == n:
         return arrays[0][None]
-    out = xp.zeros((len(arrays), max(len(a) for a in arrays)) + tuple(arrays[0].shape[1:]), dtype=arrays[0].dtype)
+    out = xp.zeros((len(arrays), n) + tuple(arrays[0].shape[1:]), dtype=arrays[0].dtype)
     for i, a in enumerate(arrays):
         out[i, :len(a)] = a
     return out
 
 
-def _filled(lengths: list[int]) -> np.ndarray:
-    """B×max(lengths) bool: True on the first ``lengths[i]`` entries of row i (what :func:`_stack_padded` fills)."""
-    return np.arange(max(lengths)) < np.asarray(lengths)[:, None]
+def _filled(lengths: list[int], width: int = 0) -> np.ndarray:
+    """B×max(lengths, width) bool: True on the first ``lengths[i]`` entries of row i (what :func:`_stack_padded`
+    fills)."""
+    return np.arange(max(width, max(lengths))) < np.asarray(lengths)[:, None]
 
 
-def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp) -> list:
+def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, static: bool | None = None) -> list:
     """Cluster several frames' points at once: ``zs`` N_i×D unit embeddings (float32, N_i ≥ 1), ``xs`` N_i×2
     positions (None when ``cfg.spatial_sigma`` = 0), all numpy arrays or all tensors on one torch device.
 
     Returns each frame's int64 labels in [0, k_i), ordered by cluster size (0 = largest), as the inputs' kind.
-    Mode finding runs on at most ``cfg.max_pixels`` points per frame; every point is then assigned.
+    Mode finding runs on at most ``cfg.max_pixels`` points per frame; every point is then assigned. ``static``
+    (default: on CUDA): mode finding on frames padded to ``cfg.max_pixels`` points for every iteration, so its shapes
+    depend on the number of frames alone and it runs as one CUDA graph (:mod:`~selfseg.method.cuda_graphs`); the
+    modes are the same.
     """
-    sigma = float(cfg.spatial_sigma)
+    if static is None:
+        static = xp is not np and zs[0].device.type == "cuda"
     subs = [np.sort(np.random.default_rng(cfg.seed).choice(len(z), cfg.max_pixels, replace=False))
             if len(z) > cfg.max_pixels else np.arange(len(z)) for z in zs]
     lengths = [len(s) for s in subs]
-    valid = xp.asarray(_filled(lengths))
-    pad = None if min(lengths) == max(lengths) else valid[..., None]
-    z = _stack_padded([zf[xp.asarray(s)] for zf, s in zip(zs, subs)], xp)
-    x = None if xs is None else _stack_padded([xf[xp.asarray(s)] for xf, s in zip(xs, subs)], xp)
-    seeds, taken = _farthest_points(z, x, valid, cfg.n_seeds, cfg.kappa, sigma, xp)
-    mu, p = _shift_modes(z, x, pad, seeds, taken, cfg, xp)
+    width = cfg.max_pixels if static else 0
+    valid = xp.asarray(_filled(lengths, width))
+    pad = None if min(lengths) == valid.shape[-1] else valid[..., None]
+    z = _stack_padded([zf[xp.asarray(s)] for zf, s in zip(zs, subs)], xp, width)
+    x = None if xs is None else _stack_padded([xf[xp.asarray(s)] for xf, s in zip(xs, subs)], xp, width)
+    if static:
+        mu, p, density, taken = _graphed_find_modes(cfg)(z, x, valid, pad)
+    else:
+        mu, p, density, taken = _find_modes(z, x, valid, pad, cfg, xp)
 
     # Merging (a few dozen modes per frame) runs on the host.
-    density = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp).sum(-2)
     mu_h, p_h, density_h, taken_h = (_asnumpy(a) for a in (mu, p, density, taken))
     groups = np.zeros(taken_h.shape, np.int64)
     for f, t in enumerate(taken_h):
         groups[f, t] = _merge_modes(mu_h[f][t], None if p_h is None else p_h[f][t], density_h[f][t], cfg)
 
     # Every point goes to its nearest converged mode, then to that mode's merged cluster.
-    log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), mu, p, cfg.kappa, sigma,
-                        xp)
+    log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), mu, p, cfg.kappa,
+                        float(cfg.spatial_sigma), xp)
     if not taken_h.all():
         log_k = xp.where(xp.asarray(taken_h)[:, None, :], log_k, -xp.inf)
     b, s = groups.shape
@@ -237,15 +272,38 @@ def vmf_meanshift(emb, xy, cfg: MeanShiftConfig):
 
 
 def split_components(labels: np.ndarray, connectivity: int = 8) -> np.ndarray:
-    """Split every label (≥ 1; 0 = background) into its connected components → int32 map, ids 1..n."""
+    """Split every label (≥ 1; 0 = background) into its connected components → int32 map, ids 1..n (labels in
+    increasing order, each label's components in raster order of their first pixel)."""
     out = np.zeros(labels.shape, np.int32)
     nxt = 1
-    for c in np.unique(labels[labels > 0]):
-        n, comp = cv2.connectedComponents((labels == c).astype(np.uint8), connectivity=connectivity)
+    for c, box in enumerate(ndimage.find_objects(np.maximum(labels, 0)), start=1):
+        if box is None:
+            continue
+        # Each label's bounding box, started at even coordinates: OpenCV's 8-connected labelling works on 2×2
+        # blocks, so aligned crops number the components as the whole frame does.
+        box = tuple(slice(b.start - b.start % 2, b.stop) for b in box)
+        n, comp = cv2.connectedComponents((labels[box] == c).astype(np.uint8), connectivity=connectivity)
         sel = comp > 0
-        out[sel] = comp[sel] + (nxt - 1)
+        out[box][sel] = comp[sel] + (nxt - 1)
         nxt += n - 1
     return out
+
+
+def _border_counts(inst: np.ndarray, n: int) -> dict[int, dict[int, int]]:
+    """{a: {b: number of 4-neighbour pixel pairs between components a and b}} of an id map (ids ≥ 1, 0 ignored)."""
+    a, b = [], []
+    for diff, step in ((inst[:, :-1] != inst[:, 1:], (0, 1)), (inst[:-1] != inst[1:], (1, 0))):
+        ys, xs = np.nonzero(diff)
+        a.append(inst[ys, xs])
+        b.append(inst[ys + step[0], xs + step[1]])
+    a, b = np.concatenate(a), np.concatenate(b)
+    sel = (a > 0) & (b > 0)
+    a, b = np.concatenate([a[sel], b[sel]]), np.concatenate([b[sel], a[sel]])
+    keys, counts = np.unique(a * (n + 1) + b, return_counts=True)
+    border: dict[int, dict[int, int]] = {}
+    for key, cnt in zip(keys.tolist(), counts.tolist()):
+        border.setdefault(key // (n + 1), {})[key % (n + 1)] = cnt
+    return border
 
 
 def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
@@ -256,14 +314,9 @@ def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
     if n == 0 or min_px <= 1:
         return inst.astype(np.int32)
     size = np.bincount(inst.ravel(), minlength=n + 1)
-    pairs = [np.stack([inst[:, :-1].ravel(), inst[:, 1:].ravel()]), np.stack([inst[:-1].ravel(), inst[1:].ravel()])]
-    a, b = np.concatenate(pairs, axis=1)
-    sel = (a > 0) & (b > 0) & (a != b)
-    a, b = np.concatenate([a[sel], b[sel]]), np.concatenate([b[sel], a[sel]])
-    keys, counts = np.unique(a * (n + 1) + b, return_counts=True)
-    border: dict[int, dict[int, int]] = {}
-    for key, cnt in zip(keys.tolist(), counts.tolist()):
-        border.setdefault(key // (n + 1), {})[key % (n + 1)] = cnt
+    small = (size > 0) & (size < min_px)
+    small[0] = False
+    border = _border_counts(inst, n) if small.any() else {}
 
     parent = np.arange(n + 1)
 
@@ -291,8 +344,9 @@ def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
     return compact[inst].astype(np.int32)
 
 
-def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig) -> list[np.ndarray]:
-    """Instance maps of frames whose D×H×W embeddings are all numpy arrays or all tensors on one torch device."""
+def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig, static: bool | None = None) -> list[np.ndarray]:
+    """Instance maps of frames whose D×H×W embeddings are all numpy arrays or all tensors on one torch device
+    (``static`` as in :func:`_meanshift_frames`)."""
     xp = _namespace(embs[0] if embs else None)
     out, pixels, zs, xs = [], [], [], []
     for emb, fg in zip(embs, fg_masks):
@@ -307,7 +361,7 @@ def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig) -> list[np.ndarra
             zs.append(emb[:, xp.asarray(vs), xp.asarray(us)].T)
             xs.append(xp.asarray(np.stack([us, vs], 1).astype(np.float32) / float(max(fg.shape))))
     if zs:
-        labels = _meanshift_frames(zs, xs if cfg.spatial_sigma > 0 else None, cfg, xp)
+        labels = _meanshift_frames(zs, xs if cfg.spatial_sigma > 0 else None, cfg, xp, static)
         for (o, vs, us), lab in zip(pixels, labels):
             o[vs, us] = _asnumpy(lab) + 1
     return [absorb_small(split_components(o, cfg.connectivity), cfg.min_component_px) for o in out]

@@ -14,7 +14,7 @@ from test_meanshift import assert_same_partition, clusters, unit
 from selfseg.config import to_dict
 from selfseg.dataset import Dataset
 from selfseg.method.embed_method import EmbeddingMethodConfig
-from selfseg.method.meanshift import MeanShiftConfig, cluster_frame, cluster_frames, vmf_meanshift
+from selfseg.method.meanshift import MeanShiftConfig, _cluster, cluster_frame, cluster_frames, vmf_meanshift
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.registry import get_method_class
 
@@ -153,3 +153,20 @@ def test_segment_video_on_the_device(analytic_dataset, tmp_path, device):
             np.testing.assert_array_equal(pred, ref)
         else:
             assert matched_ious(ref, pred).mean() >= 0.98
+
+
+@pytest.mark.parametrize("cfg", [MeanShiftConfig(min_component_px=5), MeanShiftConfig(max_pixels=300, n_seeds=8),
+                                 MeanShiftConfig(spatial_sigma=0.0, max_pixels=300, min_component_px=5)])
+def test_static_mode_finding_gives_the_numpy_labels(frames, cfg):
+    """The path CUDA graphs capture (every frame padded to ``max_pixels`` points, all iterations, no early stop),
+    run on the CPU: the numpy labels, one frame at a time and frames of different sizes in one batch. With the
+    default ``max_pixels`` every frame is padded (743–1266 foreground pixels), with 300 none is."""
+    embs = [object_embeddings(inst, 1.5 if i % 2 else 0.3, seed=i) for i, inst in enumerate(frames)]
+    masks = [inst > 0 for inst in frames]
+    refs = [cluster_frame(e, m, cfg) for e, m in zip(embs, masks)]
+    tensors = [torch.from_numpy(e) for e in embs]
+    for e, m, ref in zip(tensors, masks, refs):
+        np.testing.assert_array_equal(_cluster([e], [m], cfg, static=True)[0], ref)
+    for got, ref in zip(_cluster(tensors, masks, cfg, static=True), refs):
+        np.testing.assert_array_equal(got, ref)
+    assert max(len(np.unique(r)) for r in refs) > 3
