@@ -196,7 +196,7 @@ def main() -> None:
     ap = bench_parser(__doc__, "inference.json")
     ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
                     help="where the network, the torch clustering and training run (auto: cuda if available)")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="CPU threads of torch and OpenCV")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
@@ -208,6 +208,7 @@ def main() -> None:
         ap.error(f"--parts: inference, training or both, got {','.join(sorted(args.parts))}")
     load_at_start = os.getloadavg()
     torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
     device = resolve_device(args.device)
     cluster_cfg = MeanShiftConfig()
     train_cfg = TrainConfig()

@@ -82,18 +82,20 @@ def _asnumpy(a) -> np.ndarray:
     return a.cpu().numpy() if isinstance(a, torch.Tensor) else a
 
 
-def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp):
-    """log K between points (B×N×D, B×N×2) and modes (B×S×D, B×S×2) → B×N×S."""
+def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp, xx=None):
+    """log K between points (B×N×D, B×N×2) and modes (B×S×D, B×S×2) → B×N×S; ``xx``: the points' |x|² (B×N),
+    if already computed."""
     out = kappa * (z @ mu.swapaxes(-1, -2) - 1.0)
     if sigma > 0:
-        d2 = (x * x).sum(-1)[..., :, None] + (p * p).sum(-1)[..., None, :] - 2.0 * x @ p.swapaxes(-1, -2)
+        xx = (x * x).sum(-1) if xx is None else xx
+        d2 = xx[..., :, None] + (p * p).sum(-1)[..., None, :] - 2.0 * x @ p.swapaxes(-1, -2)
         out -= xp.maximum(d2, 0.0) / (2.0 * sigma * sigma)
     return out
 
 
-def _kernel(z, x, mu, p, pad, kappa: float, sigma: float, xp):
+def _kernel(z, x, mu, p, pad, kappa: float, sigma: float, xp, xx=None):
     """K = exp(log K) → B×N×S, zero at padded points (``pad``: B×N×1 bool, False at padding; None: none)."""
-    w = xp.exp(_log_kernel(z, x, mu, p, kappa, sigma, xp))
+    w = xp.exp(_log_kernel(z, x, mu, p, kappa, sigma, xp, xx))
     return w if pad is None else w * pad
 
 
@@ -107,10 +109,11 @@ def _farthest_points(z, x, valid, n: int, kappa: float, sigma: float, xp):
     """
     count = valid.sum(-1)
     rows = xp.arange(len(z))
+    xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
 
     def distance_to(i):  # B×N: −log K to each frame's point i
         return -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa, sigma,
-                            xp)[..., 0]
+                            xp, xx)[..., 0]
 
     seeds, taken = [xp.zeros_like(count)], [count > 0]
     dist = xp.where(valid, distance_to(seeds[0]), -xp.inf)
@@ -133,8 +136,9 @@ def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp, early_stop: 
     mu = z[rows, seeds]
     p = None if x is None else x[rows, seeds]
     moving = xp.ones_like(taken[:, 0])
+    xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
     for _ in range(cfg.iters):
-        w = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp)  # B×N×S
+        w = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp, xx)  # B×N×S
         m = w.swapaxes(-1, -2) @ z
         new_mu = m / xp.maximum(xp.linalg.norm(m, axis=-1, keepdims=True), 1e-12)
         shift = xp.amax(xp.abs(new_mu - mu), axis=-1)
@@ -189,6 +193,17 @@ def _merge_modes(mu: np.ndarray, p: np.ndarray | None, density: np.ndarray, cfg:
     return group
 
 
+def _to_host(mu, p, density, taken) -> tuple:
+    """The modes (B×S×D, B×S×2 or None, B×S, B×S bool) as numpy arrays; tensors in one device-to-host copy."""
+    if not isinstance(mu, torch.Tensor):
+        return mu, p, density, taken
+    d = mu.shape[-1]
+    packed = torch.cat([mu, density[..., None], taken[..., None].to(mu.dtype)] + ([] if p is None else [p]),
+                       -1).cpu().numpy()
+    return (np.ascontiguousarray(packed[..., :d]), None if p is None else np.ascontiguousarray(packed[..., d + 2:]),
+            np.ascontiguousarray(packed[..., d]), packed[..., d + 1] > 0.5)
+
+
 def _stack_padded(arrays: list, xp, width: int = 0):
     """B arrays of N_i rows → B×max(N_i, width)×… with zero rows after each array's (B = 1 and no padding: a view)."""
     n = max(width, max(len(a) for a in arrays))
@@ -206,6 +221,7 @@ def _filled(lengths: list[int], width: int = 0) -> np.ndarray:
     return np.arange(max(width, max(lengths))) < np.asarray(lengths)[:, None]
 
 
+@torch.no_grad()
 def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, static: bool | None = None) -> list:
     """Cluster several frames' points at once: ``zs`` N_i×D unit embeddings (float32, N_i ≥ 1), ``xs`` N_i×2
     positions (None when ``cfg.spatial_sigma`` = 0), all numpy arrays or all tensors on one torch device.
@@ -232,7 +248,7 @@ def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, stati
         mu, p, density, taken = _find_modes(z, x, valid, pad, cfg, xp)
 
     # Merging (a few dozen modes per frame) runs on the host.
-    mu_h, p_h, density_h, taken_h = (_asnumpy(a) for a in (mu, p, density, taken))
+    mu_h, p_h, density_h, taken_h = _to_host(mu, p, density, taken)
     groups = np.zeros(taken_h.shape, np.int64)
     for f, t in enumerate(taken_h):
         groups[f, t] = _merge_modes(mu_h[f][t], None if p_h is None else p_h[f][t], density_h[f][t], cfg)
@@ -276,7 +292,7 @@ def split_components(labels: np.ndarray, connectivity: int = 8) -> np.ndarray:
     increasing order, each label's components in raster order of their first pixel)."""
     out = np.zeros(labels.shape, np.int32)
     nxt = 1
-    for c, box in enumerate(ndimage.find_objects(np.maximum(labels, 0)), start=1):
+    for c, box in enumerate(ndimage.find_objects(labels), start=1):  # labels < 1 are skipped
         if box is None:
             continue
         # Each label's bounding box, started at even coordinates: OpenCV's 8-connected labelling works on 2×2
@@ -296,7 +312,7 @@ def _border_counts(inst: np.ndarray, n: int) -> dict[int, dict[int, int]]:
         ys, xs = np.nonzero(diff)
         a.append(inst[ys, xs])
         b.append(inst[ys + step[0], xs + step[1]])
-    a, b = np.concatenate(a), np.concatenate(b)
+    a, b = np.concatenate(a).astype(np.int64), np.concatenate(b).astype(np.int64)
     sel = (a > 0) & (b > 0)
     a, b = np.concatenate([a[sel], b[sel]]), np.concatenate([b[sel], a[sel]])
     keys, counts = np.unique(a * (n + 1) + b, return_counts=True)
@@ -309,14 +325,18 @@ def _border_counts(inst: np.ndarray, n: int) -> dict[int, dict[int, int]]:
 def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
     """Merge components smaller than ``min_px`` into the neighbour sharing the longest border
     (4-neighbourhood); small components without any neighbour become 0. Ids are compacted to 1..n."""
-    inst = np.asarray(inst, dtype=np.int64)
+    inst = np.asarray(inst)
+    if inst.dtype.kind not in "iu":
+        inst = inst.astype(np.int64)
     n = int(inst.max(initial=0))
     if n == 0 or min_px <= 1:
         return inst.astype(np.int32)
     size = np.bincount(inst.ravel(), minlength=n + 1)
     small = (size > 0) & (size < min_px)
     small[0] = False
-    border = _border_counts(inst, n) if small.any() else {}
+    if not small.any() and size[1:].all():  # nothing to absorb and ids already 1..n
+        return inst.astype(np.int32)
+    border = _border_counts(inst, n)
 
     parent = np.arange(n + 1)
 
@@ -341,7 +361,7 @@ def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
             parent[c] = 0  # isolated and small: dropped
     roots = np.array([find(i) for i in range(n + 1)])
     _, compact = np.unique(roots, return_inverse=True)  # roots[0] = 0 stays 0
-    return compact[inst].astype(np.int32)
+    return compact.astype(np.int32)[inst]
 
 
 def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig, static: bool | None = None) -> list[np.ndarray]:

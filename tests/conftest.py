@@ -1,3 +1,5 @@
+import os
+import shutil
 import signal
 import sys
 from pathlib import Path
@@ -9,7 +11,13 @@ from selfseg.analytic import make_dataset, two_box_scenes
 
 @pytest.fixture(scope="session")
 def analytic_dataset(tmp_path_factory) -> Path:
-    """Three ray-cast videos of boxes and a cylinder (6 frames, 160×120), in the real format."""
+    """Three ray-cast videos of boxes and a cylinder (6 frames, 160×120), in the real format.
+
+    ``SELFSEG_ANALYTIC_DATASET``: a copy made earlier by this fixture, for a machine without open3d (the ray caster),
+    such as a lent GPU machine (bench/gpu_checks.sh)."""
+    prebuilt = os.environ.get("SELFSEG_ANALYTIC_DATASET")
+    if prebuilt:
+        return shutil.copytree(prebuilt, tmp_path_factory.mktemp("analytic") / "data")
     return make_dataset(tmp_path_factory.mktemp("analytic"), two_box_scenes())
 
 
