@@ -18,8 +18,9 @@ shared (load average recorded). Training throughput is full training steps (batc
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
 speed-up over float32 (fastest and median step). On CUDA the network and the mode finding run as CUDA graphs
-(``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``). ``--parts training`` times training alone. Paper figure:
-about 6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
+(``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``).
+``--parts training`` times training alone. Paper figure: about 6 fps. ``--before``: an earlier run's JSON, kept under
+"before" for before/after comparisons.
 """
 from __future__ import annotations
 
@@ -144,7 +145,8 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
               f"({out[f'{w}x{h}']['instances_found']} instances of {inst.max()}); CPU time "
               f"{c_net * 1000:.0f} + {c_numpy * 1000:.0f} ms", flush=True)
         if device.type == "cuda":
-            print(f"    without CUDA graphs: network {t_net_eager * 1000:.1f} ms + clustering {t_torch_eager * 1000:.1f} ms "
+            print(f"    without CUDA graphs: network {t_net_eager * 1000:.1f} ms + clustering "
+                  f"{t_torch_eager * 1000:.1f} ms "
                   f"= {row['fps_eager']:.1f} fps", flush=True)
     return out
 

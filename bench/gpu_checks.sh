@@ -8,7 +8,7 @@
 # the stage folders are linked into a temporary ``selfseg`` package as pyproject.toml maps them. WHEEL_DIR: pure-Python
 # wheels the machine lacks (trimesh, for the analytic test fixtures), installed into a temporary folder. The analytic
 # test scenes need open3d; where it is missing, make them here first and carry them:
-#   .venv/bin/python -c 'import pathlib, sys; from selfseg.analytic import *; make_dataset(pathlib.Path(sys.argv[1]), two_box_scenes())' DIR
+#   .venv/bin/python -c "from selfseg.analytic import *; make_dataset(__import__('pathlib').Path('DIR'), two_box_scenes())"
 # and run with SELFSEG_ANALYTIC_DATASET=DIR.
 # Writes OUT_DIR/tests.log, OUT_DIR/inference_cuda.json, OUT_DIR/training_cuda.json and OUT_DIR/bench.log.
 set -uo pipefail
@@ -30,7 +30,8 @@ if ! "$py" -c 'import open3d' 2>/dev/null && [[ -z ${SELFSEG_ANALYTIC_DATASET:-}
 fi
 nvidia-smi -L
 "$py" -c 'import torch, sys; print(sys.version.split()[0], "torch", torch.__version__, torch.cuda.get_device_name(0))'
-"$py" -P -m pytest -q -p no:cacheprovider --tb=short tests/test_cuda_graphs.py tests/test_meanshift_torch.py 2>&1 | tee "$out/tests.log"
+"$py" -P -m pytest -q -p no:cacheprovider --tb=short tests/test_cuda_graphs.py tests/test_meanshift_torch.py 2>&1 \
+    | tee "$out/tests.log"
 tests_rc=$?
 # Inference on one CPU thread (host work of a frame is small; on 16 threads OpenCV's and torch's thread pools cost
 # more than they save), training on 16 (its augmentation runs on the CPU).

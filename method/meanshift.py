@@ -19,8 +19,8 @@ same labels on the test fixtures (float rounding differs, so a pixel equidistant
 differ). :func:`cluster_frames` runs the mode finding of several frames in one batch on the tensors'
 device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels`` and replayed as one
 CUDA graph, since a frame's mode finding is hundreds of small kernels. Merging the few dozen modes of a frame, the
-connected-component split and small-part absorption run on the host (cv2/numpy): about 2 ms of a
-320×240 frame and 8–12 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
+connected-component split and small-part absorption run on the host (cv2/numpy): about 0.6 ms of a
+320×240 frame and 1.5–2 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
 """
 from __future__ import annotations
 
@@ -69,7 +69,8 @@ def _namespace(a):
         return np
     return SimpleNamespace(
         float32=torch.float32, inf=math.inf, linalg=torch.linalg, abs=torch.abs, amax=torch.amax,
-        arange=lambda n: torch.arange(n, device=a.device), argmax=torch.argmax, bincount=torch.bincount, exp=torch.exp, minimum=torch.minimum,
+        arange=lambda n: torch.arange(n, device=a.device), argmax=torch.argmax, bincount=torch.bincount,
+        exp=torch.exp, minimum=torch.minimum,
         maximum=torch.clamp_min, ones_like=torch.ones_like, stack=torch.stack, where=torch.where,
         zeros_like=torch.zeros_like,
         asarray=lambda x, dtype=None: torch.as_tensor(x, dtype=dtype, device=a.device),
@@ -83,8 +84,8 @@ def _asnumpy(a) -> np.ndarray:
 
 
 def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp, xx=None):
-    """log K between points (B×N×D, B×N×2) and modes (B×S×D, B×S×2) → B×N×S; ``xx``: the points' |x|² (B×N),
-    if already computed."""
+    """log K between points (B×N×D, B×N×2) and modes (B×S×D, B×S×2) → B×N×S; ``xx``: the points' |x|²
+    (B×N), if already computed."""
     out = kappa * (z @ mu.swapaxes(-1, -2) - 1.0)
     if sigma > 0:
         xx = (x * x).sum(-1) if xx is None else xx
@@ -205,7 +206,8 @@ def _to_host(mu, p, density, taken) -> tuple:
 
 
 def _stack_padded(arrays: list, xp, width: int = 0):
-    """B arrays of N_i rows → B×max(N_i, width)×… with zero rows after each array's (B = 1 and no padding: a view)."""
+    """B arrays of N_i rows → B×max(N_i, width)×… with zero rows after each array's (B = 1 and no padding:
+    a view)."""
     n = max(width, max(len(a) for a in arrays))
     if len(arrays) == 1 and len(arrays[0]) == n:
         return arrays[0][None]
