@@ -17,8 +17,9 @@ tensors of any device (:func:`_namespace`), in float32 either way; :func:`cluste
 type of its embeddings. numpy arrays give the project's reference results; a tensor on the CPU gives the
 same labels on the test fixtures (float rounding differs, so a pixel equidistant between two modes may
 differ). :func:`cluster_frames` runs the mode finding of several frames in one batch on the tensors'
-device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels`` and replayed as one
-CUDA graph, since a frame's mode finding is hundreds of small kernels. Merging the few dozen modes of a frame, the
+device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels``, with the kernel as
+one batched product of augmented vectors (:func:`_kernel_functions`) and replayed as one CUDA graph, since a frame's
+mode finding is hundreds of small kernels. Merging the few dozen modes of a frame, the
 connected-component split and small-part absorption run on the host (cv2/numpy): about 0.6 ms of a
 320×240 frame and 1.5–2 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
 """
@@ -94,52 +95,82 @@ def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp, xx=None):
     return out
 
 
-def _kernel(z, x, mu, p, pad, kappa: float, sigma: float, xp, xx=None):
-    """K = exp(log K) → B×N×S, zero at padded points (``pad``: B×N×1 bool, False at padding; None: none)."""
-    w = xp.exp(_log_kernel(z, x, mu, p, kappa, sigma, xp, xx))
-    return w if pad is None else w * pad
+def _kernel_functions(z, x, kappa: float, sigma: float, xp, fused: bool = False):
+    """(log_k, distance_to) over B frames of points (z B×N×D, x B×N×2 or None): ``log_k(mu, p)`` → B×N×S against
+    modes (B×S×D, B×S×2 or None) as :func:`_log_kernel`, ``distance_to(i)`` → B×N, −log K from every point to
+    each frame's point i (B indices).
+
+    ``fused`` (torch tensors only): −log K = c_j + c_s − a_j·b_s with a = [κz, x/σ²], b = [z, x] and
+    c = κ/2 + |x|²/(2σ²), one batched product per evaluation instead of a dozen small kernels (what the CUDA
+    graph replays). The same quantity, rounded differently (and |x − p|² is not clamped at 0), so labels may
+    differ from the numpy path's where two modes are equally near.
+    """
+    rows = xp.arange(len(z))
+    if not fused:
+        xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
+        return (lambda mu, p: _log_kernel(z, x, mu, p, kappa, sigma, xp, xx),
+                lambda i: -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa,
+                                       sigma, xp, xx)[..., 0])
+    use_x = x is not None and sigma > 0
+    s2 = sigma * sigma
+
+    def augment(pts, pos):  # (a or b rows, c) of points or modes
+        c = torch.full(pts.shape[:-1], kappa / 2, dtype=pts.dtype, device=pts.device)
+        if not use_x:
+            return pts, c
+        return torch.cat([pts, pos], -1), c + (pos * pos).sum(-1) / (2 * s2)
+
+    b, c = augment(z, x)
+    a = torch.cat([kappa * z, x / s2], -1) if use_x else kappa * z
+
+    def log_k(mu, p):
+        bm, cm = augment(mu, p)
+        return torch.baddbmm(-(c[..., :, None] + cm[..., None, :]), a, bm.swapaxes(-1, -2))
+
+    def distance_to(i):
+        return torch.baddbmm((c + c[rows, i][:, None])[..., None], a, b[rows, i][..., None], alpha=-1.0)[..., 0]
+
+    return log_k, distance_to
 
 
-def _farthest_points(z, x, valid, n: int, kappa: float, sigma: float, xp):
-    """Up to ``n`` farthest-point seeds per frame under the distance −log K, starting from each frame's point 0.
+def _farthest_points(distance_to, valid, n: int, xp):
+    """Up to ``n`` farthest-point seeds per frame under ``distance_to`` (:func:`_kernel_functions`), starting from each
+    frame's point 0.
 
-    z: B×N×D, x: B×N×2 or None, valid: B×N bool (False: padding). Returns (indices B×S, taken B×S bool): a frame
-    takes no more seeds once every remaining point coincides with a seed, or all its points are seeds. Both
-    conditions persist (distances only shrink), so a frame's taken seeds come first; the loop runs on without
-    reading its results back (no device synchronisation).
+    valid: B×N bool (False: padding). Returns (indices B×S, taken B×S bool): a frame takes no more seeds once every
+    remaining point coincides with a seed, or all its points are seeds. Both conditions persist (distances only
+    shrink), so a frame's taken seeds come first; the loop runs on without reading its results back (no device
+    synchronisation).
     """
     count = valid.sum(-1)
-    rows = xp.arange(len(z))
-    xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
-
-    def distance_to(i):  # B×N: −log K to each frame's point i
-        return -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa, sigma,
-                            xp, xx)[..., 0]
-
-    seeds, taken = [xp.zeros_like(count)], [count > 0]
+    rows = xp.arange(len(valid))
+    seeds, gaps = [xp.zeros_like(count)], []  # gaps: each later seed's distance to the seeds before it
     dist = xp.where(valid, distance_to(seeds[0]), -xp.inf)
-    for k in range(1, min(n, valid.shape[-1])):
+    for _ in range(1, min(n, valid.shape[-1])):
         i = xp.argmax(dist, axis=-1)
         seeds.append(i)
-        taken.append((dist[rows, i] > 0) & (count > k))
+        gaps.append(dist[rows, i])
         dist = xp.minimum(dist, distance_to(i))
-    return xp.stack(seeds, axis=-1), xp.stack(taken, axis=-1)
+    seeds = xp.stack(seeds, axis=-1)
+    later = xp.stack(gaps, axis=-1) > 0 if gaps else seeds[:, :0] > 0
+    taken = xp.arange(seeds.shape[-1]) < count[:, None]
+    taken[:, 1:] &= later
+    return seeds, taken
 
 
-def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp, early_stop: bool = True):
+def _shift_modes(z, x, pad, seeds, taken, log_k, cfg: MeanShiftConfig, xp, early_stop: bool = True):
     """Mean-shift of every seed (B×S indices) over its frame's points → (modes B×S×D, positions B×S×2 or None).
 
-    ``pad`` as in :func:`_kernel`. A frame's modes stop moving once its taken seeds move less than 1e-4 in one
-    iteration (embedding or position); with ``early_stop`` the loop ends when every frame has stopped (a host
-    synchronisation per iteration), else it runs all ``cfg.iters`` iterations, which gives the same modes."""
-    sigma = float(cfg.spatial_sigma)
+    ``log_k`` as from :func:`_kernel_functions`, ``pad`` as in :func:`_weights`. A frame's modes stop moving once its
+    taken seeds move less than 1e-4 in one iteration (embedding or position); with ``early_stop`` the loop ends when
+    every frame has stopped (a host synchronisation per iteration), else it runs all ``cfg.iters`` iterations, which
+    gives the same modes."""
     rows = xp.arange(len(z))[:, None]
     mu = z[rows, seeds]
     p = None if x is None else x[rows, seeds]
     moving = xp.ones_like(taken[:, 0])
-    xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
     for _ in range(cfg.iters):
-        w = _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp, xx)  # B×N×S
+        w = _weights(log_k(mu, p), pad, xp)  # B×N×S
         m = w.swapaxes(-1, -2) @ z
         new_mu = m / xp.maximum(xp.linalg.norm(m, axis=-1, keepdims=True), 1e-12)
         shift = xp.amax(xp.abs(new_mu - mu), axis=-1)
@@ -154,25 +185,33 @@ def _shift_modes(z, x, pad, seeds, taken, cfg: MeanShiftConfig, xp, early_stop: 
     return mu, p
 
 
-def _find_modes(z, x, valid, pad, cfg: MeanShiftConfig, xp, early_stop: bool = True):
+def _weights(log_k, pad, xp):
+    """K = exp(log K) (B×N×S), zero at padded points (``pad``: B×N×1 bool, False at padding; None: none)."""
+    w = xp.exp(log_k)
+    return w if pad is None else w * pad
+
+
+def _find_modes(z, x, valid, pad, cfg: MeanShiftConfig, xp, static: bool = False):
     """Seeds, mean-shift and each mode's kernel density for B frames of points (z B×N×D, x B×N×2 or None, valid
-    B×N bool, ``pad`` as in :func:`_kernel`) → (modes B×S×D, positions B×S×2 or None, density B×S, taken B×S).
-    Without ``early_stop`` nothing synchronises with the host, so a CUDA graph can capture it."""
-    sigma = float(cfg.spatial_sigma)
-    seeds, taken = _farthest_points(z, x, valid, cfg.n_seeds, cfg.kappa, sigma, xp)
-    mu, p = _shift_modes(z, x, pad, seeds, taken, cfg, xp, early_stop)
-    return mu, p, _kernel(z, x, mu, p, pad, cfg.kappa, sigma, xp).sum(-2), taken
+    B×N bool, ``pad`` as in :func:`_weights`) → (modes B×S×D, positions B×S×2 or None, density B×S, taken B×S).
+    ``static``: no early stop and the fused kernel (:func:`_kernel_functions`): nothing synchronises with the host
+    and a few hundred kernels in all, what a CUDA graph captures."""
+    log_k, distance_to = _kernel_functions(z, x if cfg.spatial_sigma > 0 else None, cfg.kappa,
+                                           float(cfg.spatial_sigma), xp, fused=static)
+    seeds, taken = _farthest_points(distance_to, valid, cfg.n_seeds, xp)
+    mu, p = _shift_modes(z, x, pad, seeds, taken, log_k, cfg, xp, early_stop=not static)
+    return mu, p, _weights(log_k(mu, p), pad, xp).sum(-2), taken
 
 
 _MODE_GRAPHS: dict[tuple, GraphedFunction] = {}
 
 
 def _graphed_find_modes(cfg: MeanShiftConfig) -> GraphedFunction:
-    """:func:`_find_modes` of torch tensors for ``cfg``, without early stopping, as a CUDA graph per batch size."""
+    """:func:`_find_modes` of torch tensors for ``cfg``, static, as a CUDA graph per batch size."""
     key = astuple(cfg)
     if key not in _MODE_GRAPHS:
         _MODE_GRAPHS[key] = GraphedFunction(
-            lambda z, x, valid, pad: _find_modes(z, x, valid, pad, cfg, _namespace(z), early_stop=False))
+            lambda z, x, valid, pad: _find_modes(z, x, valid, pad, cfg, _namespace(z), static=True))
     return _MODE_GRAPHS[key]
 
 
@@ -230,9 +269,8 @@ def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, stati
 
     Returns each frame's int64 labels in [0, k_i), ordered by cluster size (0 = largest), as the inputs' kind.
     Mode finding runs on at most ``cfg.max_pixels`` points per frame; every point is then assigned. ``static``
-    (default: on CUDA): mode finding on frames padded to ``cfg.max_pixels`` points for every iteration, so its shapes
-    depend on the number of frames alone and it runs as one CUDA graph (:mod:`~selfseg.method.cuda_graphs`); the
-    modes are the same.
+    (default: on CUDA): mode finding on frames padded to ``cfg.max_pixels`` points, so its shapes depend on the
+    number of frames alone, as one CUDA graph (:mod:`~selfseg.method.cuda_graphs`; :func:`_find_modes`).
     """
     if static is None:
         static = xp is not np and zs[0].device.type == "cuda"
