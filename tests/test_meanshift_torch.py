@@ -159,8 +159,9 @@ def test_segment_video_on_the_device(analytic_dataset, tmp_path, device):
                                  MeanShiftConfig(spatial_sigma=0.0, max_pixels=300, min_component_px=5)])
 def test_static_mode_finding_gives_the_numpy_labels(frames, cfg):
     """The path CUDA graphs capture (every frame padded to ``max_pixels`` points, the kernel as one product of
-    augmented vectors, all iterations, no early stop), run on the CPU: the numpy labels, one frame at a time and frames of different sizes in one batch. With the
-    default ``max_pixels`` every frame is padded (743–1266 foreground pixels), with 300 none is."""
+    augmented vectors, all iterations, no early stop), run on the CPU: the numpy labels, one frame at a time and
+    frames of different sizes in one batch. With the default ``max_pixels`` every frame is padded (743–1266
+    foreground pixels), with 300 none is."""
     embs = [object_embeddings(inst, 1.5 if i % 2 else 0.3, seed=i) for i, inst in enumerate(frames)]
     masks = [inst > 0 for inst in frames]
     refs = [cluster_frame(e, m, cfg) for e, m in zip(embs, masks)]
