@@ -37,7 +37,6 @@ from selfseg.guard import ground_truth_forbidden
 from selfseg.importers import IMAGE_EXTS, image_files, read_intrinsics
 from selfseg.library_log import run_log, summary
 from selfseg.method.background import frame_foreground
-from selfseg.method.meanshift import cluster_frame
 from selfseg.method.pipeline import Ours
 from selfseg.registry import UnknownMethodError, get_method_class
 from selfseg.writers import write_inst, write_rgb
@@ -130,8 +129,8 @@ def load_model(model_dir: Path):
 
 
 def segment_frame(method, rgb: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
-    """uint16 H×W instance map of one frame, as ``method.segment`` computes it in ``evaluate``."""
-    return cluster_frame(method.embed(rgb, fg_mask), fg_mask, method.config.cluster).astype(np.uint16)
+    """uint16 H×W instance map of one frame, as ``method.segment`` computes it in ``evaluate`` (on a GPU too)."""
+    return method.segment_rgb(rgb, fg_mask).astype(np.uint16)
 
 
 def preview(rgb: np.ndarray, inst: np.ndarray) -> np.ndarray:

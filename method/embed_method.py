@@ -111,7 +111,12 @@ class EmbeddingMethodBase(Method):
         return self.config.train
 
     def segment(self, video: Video, frame_id: int, fg_mask: np.ndarray) -> np.ndarray:
-        emb = self._embed([video.rgb(frame_id)], [fg_mask])[0]
+        return self.segment_rgb(video.rgb(frame_id), fg_mask)
+
+    def segment_rgb(self, rgb: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
+        """int32 H×W instance map of a uint8 H×W×3 frame (0 = background): embeddings, then the clustering on the
+        method's device (numpy on the CPU)."""
+        emb = self._embed([rgb], [fg_mask])[0]
         return cluster_frame(emb.cpu().numpy() if self._device.type == "cpu" else emb, fg_mask, self.config.cluster)
 
     def segment_video(self, video: Video, frame_ids: list[int],
