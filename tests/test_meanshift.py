@@ -106,3 +106,23 @@ def test_cluster_frame_edge_cases():
         cluster_frame(np.ones((4, 5, 6)), np.ones((6, 5), bool), cfg)
     with pytest.raises(ValueError, match="connectivity"):
         MeanShiftConfig(connectivity=6)
+
+
+@pytest.mark.parametrize("connectivity", [4, 8])
+def test_split_components_numbers_as_whole_frame_labelling(connectivity):
+    """Each label is labelled inside its bounding box; the ids must be those of labelling the whole frame label by
+    label (OpenCV's 8-connected labelling works on 2×2 blocks, so a crop at odd coordinates would renumber)."""
+    import cv2
+
+    rng = np.random.default_rng(connectivity)
+    for t in range(200):
+        h, w = rng.integers(3, 40, 2)
+        labels = rng.integers(-1, rng.integers(2, 12), (h, w))
+        if t % 2:  # blocky maps: components of many shapes and sizes
+            labels = cv2.resize(labels.astype(np.int16), (int(w) * 3, int(h) * 3), interpolation=cv2.INTER_NEAREST)
+        want, nxt = np.zeros(labels.shape, np.int32), 1
+        for c in np.unique(labels[labels > 0]):
+            n, comp = cv2.connectedComponents((labels == c).astype(np.uint8), connectivity=connectivity)
+            want[comp > 0] = comp[comp > 0] + nxt - 1
+            nxt += n - 1
+        np.testing.assert_array_equal(split_components(labels, connectivity), want)
