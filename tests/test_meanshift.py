@@ -126,3 +126,21 @@ def test_split_components_numbers_as_whole_frame_labelling(connectivity):
             want[comp > 0] = comp[comp > 0] + nxt - 1
             nxt += n - 1
         np.testing.assert_array_equal(split_components(labels, connectivity), want)
+
+
+def test_border_counts_count_every_4_neighbour_pair():
+    from selfseg.method.meanshift import _border_counts
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        inst = rng.integers(0, 6, tuple(rng.integers(2, 15, 2)))
+        want: dict = {}
+        for (y, x), a in np.ndenumerate(inst):
+            for y2, x2 in ((y, x + 1), (y + 1, x)):
+                if y2 < inst.shape[0] and x2 < inst.shape[1] and a > 0 and inst[y2, x2] > 0 and inst[y2, x2] != a:
+                    b = int(inst[y2, x2])
+                    want.setdefault(int(a), {}).setdefault(b, 0)
+                    want.setdefault(b, {}).setdefault(int(a), 0)
+                    want[int(a)][b] += 1
+                    want[b][int(a)] += 1
+        assert _border_counts(inst, int(inst.max())) == want
