@@ -11,17 +11,17 @@ only if their embeddings have cosine ≥ ``merge_threshold`` *and* they lie with
 of each other, so identical-looking objects far apart stay separate. ``spatial_sigma = 0``
 gives the plain vMF mean-shift (embedding only). The number of clusters is never given.
 
-Devices: the mode finding (farthest-point seeds, mean-shift iterations, every pixel's nearest mode,
-cluster ranking) is written once against numpy's array functions and runs on numpy arrays or on torch
-tensors of any device (:func:`_namespace`), in float32 either way; :func:`cluster_frame` picks by the
-type of its embeddings. numpy arrays give the project's reference results; a tensor on the CPU gives the
-same labels on the test fixtures (float rounding differs, so a pixel equidistant between two modes may
-differ). :func:`cluster_frames` runs the mode finding of several frames in one batch on the tensors'
-device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels``, with the kernel as
-one batched product of augmented vectors (:func:`_kernel_functions`) and replayed as one CUDA graph, since a frame's
-mode finding is hundreds of small kernels. Merging the few dozen modes of a frame, the
-connected-component split and small-part absorption run on the host (cv2/numpy): about 0.6 ms of a
-320×240 frame and 1.5–2 ms of a 640×480 one on one CPU core (``bench/bench_inference.py``).
+Devices: the mode finding (farthest-point seeds, mean-shift iterations) and every pixel's nearest mode are written
+once against numpy's array functions and run on numpy arrays or on torch tensors of any device (:func:`_namespace`),
+in float32 either way; :func:`cluster_frame` picks by the type of its embeddings. numpy arrays give the project's
+reference results; a tensor on the CPU gives the same labels on the test fixtures (float rounding differs, so a pixel
+equidistant between two modes may differ). :func:`cluster_frames` runs the mode finding of several frames in one
+batch on the tensors' device (frames padded to the largest, padding weighs zero); on CUDA, padded to ``max_pixels``,
+with the kernel and the moments as batched products of augmented rows (:func:`_kernel_functions`) and replayed as one
+CUDA graph, since a frame's mode finding is hundreds of small kernels. One device-to-host copy then brings back the
+modes and every pixel's nearest mode; merging the few dozen modes of a frame, ranking clusters, the
+connected-component split and small-part absorption run on the host (numpy/cv2), and the host's work that needs no
+device result (foreground pixels, the subsample) comes before the first transfer, beside the network's forward pass.
 """
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def _namespace(a):
     return SimpleNamespace(
         float32=torch.float32, inf=math.inf, linalg=torch.linalg, abs=torch.abs, amax=torch.amax,
         arange=lambda n: torch.arange(n, device=a.device), argmax=torch.argmax, bincount=torch.bincount,
-        exp=torch.exp, minimum=torch.minimum,
+        concatenate=torch.cat, exp=torch.exp, minimum=torch.minimum,
         maximum=torch.clamp_min, ones_like=torch.ones_like, stack=torch.stack, where=torch.where,
         zeros_like=torch.zeros_like,
         asarray=lambda x, dtype=None: torch.as_tensor(x, dtype=dtype, device=a.device),
@@ -82,6 +82,14 @@ def _namespace(a):
 def _asnumpy(a) -> np.ndarray:
     """``a`` as a numpy array on the host (numpy arrays and None pass through)."""
     return a.cpu().numpy() if isinstance(a, torch.Tensor) else a
+
+
+def _max_argmax(a, xp):
+    """(largest value, its first index) along the last axis, in one pass on tensors."""
+    if xp is np:
+        i = np.argmax(a, axis=-1)
+        return np.take_along_axis(a, i[..., None], -1)[..., 0], i
+    return torch.max(a, -1)
 
 
 def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp, xx=None):
@@ -95,42 +103,78 @@ def _log_kernel(z, x, mu, p, kappa: float, sigma: float, xp, xx=None):
     return out
 
 
-def _kernel_functions(z, x, kappa: float, sigma: float, xp, fused: bool = False):
-    """(log_k, distance_to) over B frames of points (z B×N×D, x B×N×2 or None): ``log_k(mu, p)`` → B×N×S against
-    modes (B×S×D, B×S×2 or None) as :func:`_log_kernel`, ``distance_to(i)`` → B×N, −log K from every point to
-    each frame's point i (B indices).
+# Kernel value of padding in the fused kernel: log K = −_FAR (exp: 0). Finite, so no 0·∞ anywhere in a product.
+_FAR = 1e30
 
-    ``fused`` (torch tensors only): −log K = c_j + c_s − a_j·b_s with a = [κz, x/σ²], b = [z, x] and
-    c = κ/2 + |x|²/(2σ²), one batched product per evaluation instead of a dozen small kernels (what the CUDA
-    graph replays). The same quantity, rounded differently (and |x − p|² is not clamped at 0), so labels may
-    differ from the numpy path's where two modes are equally near.
+
+def _kernel_functions(z, x, pad, kappa: float, sigma: float, xp, fused: bool = False) -> SimpleNamespace:
+    """The kernel over B frames of points (z B×N×D unit embeddings, x B×N×2 positions or None when ``sigma`` = 0,
+    ``pad`` B×N bool, False at padding, or None). A mode is one row [μ, p] (D + 2; [μ] without positions), so
+    modes are B×S×(D + 2) arrays. Returns a namespace of
+
+    - ``points``: the points as modes, B×N×(D + 2);
+    - ``log_k(m)``: log K → B×N×S against modes m as :func:`_log_kernel`, −∞ (or −1e30) at padding;
+    - ``distance_to(i)``: −log K → B×N from every point to each frame's point i (B indices);
+    - ``moments(w)``: (Σ w z, Σ w x or None, Σ w) → B×S×D, B×S×2, B×S of weights w (B×N×S) over the points.
+
+    ``fused`` (torch tensors only): log K = κz·μ + x·p/σ² − κ − (|x|² + |p|²)/(2σ²), written as one product of
+    augmented rows (below), so each kernel evaluation and the moments are one batched product, a few kernels per step
+    where the plain form needs a dozen (what the CUDA graph replays); padding gets log K = −1e30. The same
+    quantities, rounded differently (and |x − p|² is not clamped at 0), so labels may differ from the numpy path's
+    where two modes are equally near.
     """
+    d = z.shape[-1]
     rows = xp.arange(len(z))
-    if not fused:
-        xx = None if x is None or sigma <= 0 else (x * x).sum(-1)
-        return (lambda mu, p: _log_kernel(z, x, mu, p, kappa, sigma, xp, xx),
-                lambda i: -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa,
-                                       sigma, xp, xx)[..., 0])
     use_x = x is not None and sigma > 0
+    x = x if use_x else None
+    if not fused:
+        xx = None if x is None else (x * x).sum(-1)
+
+        def log_k(m):
+            out = _log_kernel(z, x, m[..., :d], None if x is None else m[..., d:], kappa, sigma, xp, xx)
+            return out if pad is None else xp.where(pad[..., None], out, -xp.inf)
+
+        def distance_to(i):
+            return -_log_kernel(z, x, z[rows, i][:, None], None if x is None else x[rows, i][:, None], kappa, sigma,
+                                xp, xx)[..., 0]
+
+        def moments(w):
+            wt = w.swapaxes(-1, -2)
+            return wt @ z, None if x is None else wt @ x, w.sum(-2)
+
+        return SimpleNamespace(points=z if x is None else xp.concatenate([z, x], -1), log_k=log_k,
+                               distance_to=distance_to, moments=moments)
+
     s2 = sigma * sigma
+    # log K = a·[μ, p, 1, |p|²] with a = [κz, x/σ², −c, −1/(2σ²)], c = κ + |x|²/(2σ²) (1e30 at padding); without
+    # positions a = [κz, −κ] against [μ, 1]. Points augmented as modes: [z, x, 1, |x|²].
+    c = torch.full_like(z[..., :1], kappa)  # B×N×1
+    one = torch.ones_like(c)
+    if x is None:
+        a, aug = [kappa * z], [z, one]
+    else:
+        xx = (x * x).sum(-1, keepdim=True)
+        c = c + xx / (2 * s2)
+        a, aug = [kappa * z, x / s2], [z, x, one, xx]
+    if pad is not None:
+        c = torch.where(pad[..., None], c, _FAR)
+    a = torch.cat(a + [-c] + ([] if x is None else [one / (-2 * s2)]), -1)
+    a_neg, points_aug = -a, torch.cat(aug, -1)
 
-    def augment(pts, pos):  # (a or b rows, c) of points or modes
-        c = torch.full(pts.shape[:-1], kappa / 2, dtype=pts.dtype, device=pts.device)
-        if not use_x:
-            return pts, c
-        return torch.cat([pts, pos], -1), c + (pos * pos).sum(-1) / (2 * s2)
-
-    b, c = augment(z, x)
-    a = torch.cat([kappa * z, x / s2], -1) if use_x else kappa * z
-
-    def log_k(mu, p):
-        bm, cm = augment(mu, p)
-        return torch.baddbmm(-(c[..., :, None] + cm[..., None, :]), a, bm.swapaxes(-1, -2))
+    def log_k(m):
+        one_m = torch.ones_like(m[..., :1])
+        cols = [m, one_m] if x is None else [m, one_m, (m[..., d:] * m[..., d:]).sum(-1, keepdim=True)]
+        return a @ torch.cat(cols, -1).swapaxes(-1, -2)
 
     def distance_to(i):
-        return torch.baddbmm((c + c[rows, i][:, None])[..., None], a, b[rows, i][..., None], alpha=-1.0)[..., 0]
+        return (a_neg @ points_aug[rows, i][..., None])[..., 0]
 
-    return log_k, distance_to
+    def moments(w):  # Σ w·[z, x, 1, |x|²]
+        mom = w.swapaxes(-1, -2) @ points_aug
+        return mom[..., :d], None if x is None else mom[..., d:d + 2], mom[..., d if x is None else d + 2]
+
+    return SimpleNamespace(points=points_aug[..., :d + (0 if x is None else 2)], log_k=log_k, distance_to=distance_to,
+                           moments=moments)
 
 
 def _farthest_points(distance_to, valid, n: int, xp):
@@ -143,13 +187,12 @@ def _farthest_points(distance_to, valid, n: int, xp):
     synchronisation).
     """
     count = valid.sum(-1)
-    rows = xp.arange(len(valid))
     seeds, gaps = [xp.zeros_like(count)], []  # gaps: each later seed's distance to the seeds before it
     dist = xp.where(valid, distance_to(seeds[0]), -xp.inf)
     for _ in range(1, min(n, valid.shape[-1])):
-        i = xp.argmax(dist, axis=-1)
+        gap, i = _max_argmax(dist, xp)
         seeds.append(i)
-        gaps.append(dist[rows, i])
+        gaps.append(gap)
         dist = xp.minimum(dist, distance_to(i))
     seeds = xp.stack(seeds, axis=-1)
     later = xp.stack(gaps, axis=-1) > 0 if gaps else seeds[:, :0] > 0
@@ -158,49 +201,38 @@ def _farthest_points(distance_to, valid, n: int, xp):
     return seeds, taken
 
 
-def _shift_modes(z, x, pad, seeds, taken, log_k, cfg: MeanShiftConfig, xp, early_stop: bool = True):
-    """Mean-shift of every seed (B×S indices) over its frame's points → (modes B×S×D, positions B×S×2 or None).
+def _shift_modes(kernel: SimpleNamespace, seeds, taken, cfg: MeanShiftConfig, xp, early_stop: bool = True):
+    """Mean-shift of every seed (B×S indices) over its frame's points (``kernel`` from :func:`_kernel_functions`) →
+    modes B×S×(D + 2) ([μ, p]; [μ] without positions).
 
-    ``log_k`` as from :func:`_kernel_functions`, ``pad`` as in :func:`_weights`. A frame's modes stop moving once its
-    taken seeds move less than 1e-4 in one iteration (embedding or position); with ``early_stop`` the loop ends when
-    every frame has stopped (a host synchronisation per iteration), else it runs all ``cfg.iters`` iterations, which
-    gives the same modes."""
-    rows = xp.arange(len(z))[:, None]
-    mu = z[rows, seeds]
-    p = None if x is None else x[rows, seeds]
+    A frame's modes stop moving once its taken seeds move less than 1e-4 in one iteration (embedding or position);
+    with ``early_stop`` the loop ends when every frame has stopped (a host synchronisation per iteration), else it
+    runs all ``cfg.iters`` iterations, which gives the same modes."""
+    m = kernel.points[xp.arange(len(seeds))[:, None], seeds]
     moving = xp.ones_like(taken[:, 0])
     for _ in range(cfg.iters):
-        w = _weights(log_k(mu, p), pad, xp)  # B×N×S
-        m = w.swapaxes(-1, -2) @ z
-        new_mu = m / xp.maximum(xp.linalg.norm(m, axis=-1, keepdims=True), 1e-12)
-        shift = xp.amax(xp.abs(new_mu - mu), axis=-1)
-        mu = xp.where(moving[:, None, None], new_mu, mu)
-        if p is not None:
-            new_p = (w.swapaxes(-1, -2) @ x) / xp.maximum(w.sum(-2), 1e-30)[..., None]
-            shift = xp.maximum(shift, xp.amax(xp.abs(new_p - p), axis=-1))
-            p = xp.where(moving[:, None, None], new_p, p)
+        mz, mx, wsum = kernel.moments(xp.exp(kernel.log_k(m)))
+        new = mz / xp.maximum(xp.linalg.norm(mz, axis=-1, keepdims=True), 1e-12)
+        if mx is not None:
+            new = xp.concatenate([new, mx / xp.maximum(wsum, 1e-30)[..., None]], -1)
+        shift = xp.amax(xp.abs(new - m), axis=-1)
+        m = xp.where(moving[:, None, None], new, m)
         moving = moving & (xp.amax(xp.where(taken, shift, 0.0), axis=-1) >= 1e-4)
         if early_stop and not moving.any():
             break
-    return mu, p
-
-
-def _weights(log_k, pad, xp):
-    """K = exp(log K) (B×N×S), zero at padded points (``pad``: B×N×1 bool, False at padding; None: none)."""
-    w = xp.exp(log_k)
-    return w if pad is None else w * pad
+    return m
 
 
 def _find_modes(z, x, valid, pad, cfg: MeanShiftConfig, xp, static: bool = False):
     """Seeds, mean-shift and each mode's kernel density for B frames of points (z B×N×D, x B×N×2 or None, valid
-    B×N bool, ``pad`` as in :func:`_weights`) → (modes B×S×D, positions B×S×2 or None, density B×S, taken B×S).
+    B×N bool, False at padding; ``pad``: the same, or None where no frame is padded) → (modes B×S×(D + 2) as from
+    :func:`_shift_modes`, density B×S, taken B×S).
     ``static``: no early stop and the fused kernel (:func:`_kernel_functions`): nothing synchronises with the host
     and a few hundred kernels in all, what a CUDA graph captures."""
-    log_k, distance_to = _kernel_functions(z, x if cfg.spatial_sigma > 0 else None, cfg.kappa,
-                                           float(cfg.spatial_sigma), xp, fused=static)
-    seeds, taken = _farthest_points(distance_to, valid, cfg.n_seeds, xp)
-    mu, p = _shift_modes(z, x, pad, seeds, taken, log_k, cfg, xp, early_stop=not static)
-    return mu, p, _weights(log_k(mu, p), pad, xp).sum(-2), taken
+    kernel = _kernel_functions(z, x, pad, cfg.kappa, float(cfg.spatial_sigma), xp, fused=static)
+    seeds, taken = _farthest_points(kernel.distance_to, valid, cfg.n_seeds, xp)
+    m = _shift_modes(kernel, seeds, taken, cfg, xp, early_stop=not static)
+    return m, xp.exp(kernel.log_k(m)).sum(-2), taken
 
 
 _MODE_GRAPHS: dict[tuple, GraphedFunction] = {}
@@ -216,32 +248,33 @@ def _graphed_find_modes(cfg: MeanShiftConfig) -> GraphedFunction:
 
 
 def _merge_modes(mu: np.ndarray, p: np.ndarray | None, density: np.ndarray, cfg: MeanShiftConfig) -> np.ndarray:
-    """Cluster id of each converged mode (S×D, S×2 or None, kernel density S): modes merge greedily, densest first."""
-    group = np.full(len(mu), -1)
+    """Cluster id of each converged mode (S×D, S×2 or None, kernel density S): modes merge greedily, densest first,
+    each into the first kept (denser) mode it is close to."""
+    close = mu @ mu.T >= cfg.merge_threshold
+    if p is not None:
+        close &= np.sqrt(((p[:, None] - p[None]) ** 2).sum(-1)) <= cfg.merge_xy
+    close = close.tolist()
+    group = [-1] * len(mu)
     kept: list[int] = []
-    for s in np.argsort(-density, kind="stable"):
-        for k in kept:
-            close = float(mu[s] @ mu[k]) >= cfg.merge_threshold
-            if close and p is not None:
-                close = float(np.linalg.norm(p[s] - p[k])) <= cfg.merge_xy
-            if close:
-                group[s] = group[k]
-                break
-        else:
-            group[s] = len(kept)
+    for s in np.argsort(-density, kind="stable").tolist():
+        k = next((k for k in kept if close[s][k]), None)
+        group[s] = len(kept) if k is None else group[k]
+        if k is None:
             kept.append(s)
-    return group
+    return np.asarray(group, np.int64)
 
 
-def _to_host(mu, p, density, taken) -> tuple:
-    """The modes (B×S×D, B×S×2 or None, B×S, B×S bool) as numpy arrays; tensors in one device-to-host copy."""
-    if not isinstance(mu, torch.Tensor):
-        return mu, p, density, taken
-    d = mu.shape[-1]
-    packed = torch.cat([mu, density[..., None], taken[..., None].to(mu.dtype)] + ([] if p is None else [p]),
-                       -1).cpu().numpy()
-    return (np.ascontiguousarray(packed[..., :d]), None if p is None else np.ascontiguousarray(packed[..., d + 2:]),
-            np.ascontiguousarray(packed[..., d]), packed[..., d + 1] > 0.5)
+def _to_host(m, density, taken, nearest) -> tuple:
+    """Modes, densities, taken flags and nearest modes (B×S×(D + 2), B×S, B×S bool, B×M int) as numpy arrays;
+    tensors in one device-to-host copy."""
+    if not isinstance(m, torch.Tensor):
+        return m, density, taken, nearest
+    b, s = taken.shape
+    packed = torch.cat([torch.cat([m, density[..., None], taken[..., None].to(m.dtype)], -1).reshape(b, -1),
+                        nearest.to(m.dtype)], -1).cpu().numpy()  # indices < S, exact in float32
+    modes = packed[:, :s * (m.shape[-1] + 2)].reshape(b, s, -1)
+    return (np.ascontiguousarray(modes[..., :-2]), np.ascontiguousarray(modes[..., -2]), modes[..., -1] > 0.5,
+            packed[:, s * (m.shape[-1] + 2):].astype(np.int64))
 
 
 def _stack_padded(arrays: list, xp, width: int = 0):
@@ -262,51 +295,56 @@ def _filled(lengths: list[int], width: int = 0) -> np.ndarray:
     return np.arange(max(width, max(lengths))) < np.asarray(lengths)[:, None]
 
 
-@torch.no_grad()
-def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, static: bool | None = None) -> list:
-    """Cluster several frames' points at once: ``zs`` N_i×D unit embeddings (float32, N_i ≥ 1), ``xs`` N_i×2
-    positions (None when ``cfg.spatial_sigma`` = 0), all numpy arrays or all tensors on one torch device.
+def _subsample(n: int, cfg: MeanShiftConfig) -> np.ndarray:
+    """Sorted indices of the at most ``cfg.max_pixels`` of n points that mode finding runs on (seeded by
+    ``cfg.seed``)."""
+    if n <= cfg.max_pixels:
+        return np.arange(n)
+    chosen = np.zeros(n, bool)  # the set numpy's choice draws, sorted in O(n)
+    chosen[np.random.default_rng(cfg.seed).choice(n, cfg.max_pixels, replace=False, shuffle=False)] = True
+    return np.flatnonzero(chosen)
 
-    Returns each frame's int64 labels in [0, k_i), ordered by cluster size (0 = largest), as the inputs' kind.
-    Mode finding runs on at most ``cfg.max_pixels`` points per frame; every point is then assigned. ``static``
-    (default: on CUDA): mode finding on frames padded to ``cfg.max_pixels`` points, so its shapes depend on the
-    number of frames alone, as one CUDA graph (:mod:`~selfseg.method.cuda_graphs`; :func:`_find_modes`).
+
+@torch.no_grad()
+def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, static: bool | None = None,
+                      subs: list | None = None) -> list[np.ndarray]:
+    """Cluster several frames' points at once: ``zs`` N_i×D unit embeddings (float32, N_i ≥ 1), ``xs`` N_i×2
+    positions (None when ``cfg.spatial_sigma`` = 0), all numpy arrays or all tensors on one torch device; ``subs``:
+    each frame's :func:`_subsample`, if already drawn.
+
+    Returns each frame's int64 labels in [0, k_i) (numpy), ordered by cluster size (0 = largest). Mode finding runs
+    on at most ``cfg.max_pixels`` points per frame; every point is then assigned its nearest mode on the device, and
+    one device-to-host copy brings back modes and assignments. ``static`` (default: on CUDA): mode finding on frames
+    padded to ``cfg.max_pixels`` points, so its shapes depend on the number of frames alone, as one CUDA graph
+    (:mod:`~selfseg.method.cuda_graphs`; :func:`_find_modes`).
     """
     if static is None:
         static = xp is not np and zs[0].device.type == "cuda"
-    subs = [np.sort(np.random.default_rng(cfg.seed).choice(len(z), cfg.max_pixels, replace=False))
-            if len(z) > cfg.max_pixels else np.arange(len(z)) for z in zs]
+    subs = [_subsample(len(z), cfg) for z in zs] if subs is None else subs
     lengths = [len(s) for s in subs]
     width = cfg.max_pixels if static else 0
     valid = xp.asarray(_filled(lengths, width))
-    pad = None if min(lengths) == valid.shape[-1] else valid[..., None]
+    pad = None if min(lengths) == valid.shape[-1] else valid
     z = _stack_padded([zf[xp.asarray(s)] for zf, s in zip(zs, subs)], xp, width)
     x = None if xs is None else _stack_padded([xf[xp.asarray(s)] for xf, s in zip(xs, subs)], xp, width)
     if static:
-        mu, p, density, taken = _graphed_find_modes(cfg)(z, x, valid, pad)
+        m, density, taken = _graphed_find_modes(cfg)(z, x, valid, pad)
     else:
-        mu, p, density, taken = _find_modes(z, x, valid, pad, cfg, xp)
-
-    # Merging (a few dozen modes per frame) runs on the host.
-    mu_h, p_h, density_h, taken_h = _to_host(mu, p, density, taken)
-    groups = np.zeros(taken_h.shape, np.int64)
-    for f, t in enumerate(taken_h):
-        groups[f, t] = _merge_modes(mu_h[f][t], None if p_h is None else p_h[f][t], density_h[f][t], cfg)
-
-    # Every point goes to its nearest converged mode, then to that mode's merged cluster.
-    log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), mu, p, cfg.kappa,
-                        float(cfg.spatial_sigma), xp)
-    if not taken_h.all():
-        log_k = xp.where(xp.asarray(taken_h)[:, None, :], log_k, -xp.inf)
-    b, s = groups.shape
-    labels = xp.asarray(groups.ravel())[xp.argmax(log_k, axis=-1) + xp.asarray(np.arange(b)[:, None] * s)]  # B×M
-    # Clusters ranked by size per frame; frame f's cluster c is f·k + c below.
-    n_points, k = [len(z) for z in zs], int(groups.max()) + 1
-    flat = labels + xp.asarray(np.arange(b)[:, None] * k)
-    sizes = xp.bincount(flat[xp.asarray(_filled(n_points))], minlength=b * k).reshape(b, k)
-    rank = xp.argsort(xp.argsort(-sizes, axis=-1, kind="stable"), axis=-1, kind="stable")
-    labels = rank.reshape(-1)[flat]
-    return [labels[f, :n] for f, n in enumerate(n_points)]
+        m, density, taken = _find_modes(z, x, valid, pad, cfg, xp)
+    d = z.shape[-1]
+    # Every point's nearest taken mode (B×M), then on the host: the modes merge and clusters are ranked by size.
+    log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), m[..., :d],
+                        None if x is None else m[..., d:], cfg.kappa, float(cfg.spatial_sigma), xp)
+    nearest = xp.argmax(xp.where(taken[:, None, :], log_k, -xp.inf), axis=-1)
+    m, density, taken, nearest = _to_host(m, density, taken, nearest)
+    out = []
+    for f, t in enumerate(taken):
+        group = np.zeros(len(t), np.int64)
+        group[t] = _merge_modes(m[f, t, :d], None if x is None else m[f, t, d:], density[f, t], cfg)
+        labels = group[nearest[f, :len(zs[f])]]
+        rank = np.argsort(np.argsort(-np.bincount(labels), kind="stable"), kind="stable")
+        out.append(rank[labels])
+    return out
 
 
 def vmf_meanshift(emb, xy, cfg: MeanShiftConfig):
@@ -321,10 +359,10 @@ def vmf_meanshift(emb, xy, cfg: MeanShiftConfig):
     if n == 0:
         return xp.asarray(np.zeros(0, np.int64))
     if cfg.spatial_sigma <= 0:
-        return _meanshift_frames([z], None, cfg, xp)[0]
+        return xp.asarray(_meanshift_frames([z], None, cfg, xp)[0])
     if xy is None or tuple(np.shape(xy)) != (n, 2):
         raise ValueError(f"spatial_sigma > 0 needs xy of shape ({n}, 2), got {None if xy is None else np.shape(xy)}")
-    return _meanshift_frames([z], [xp.asarray(xy, dtype=xp.float32)], cfg, xp)[0]
+    return xp.asarray(_meanshift_frames([z], [xp.asarray(xy, dtype=xp.float32)], cfg, xp)[0])
 
 
 def split_components(labels: np.ndarray, connectivity: int = 8) -> np.ndarray:
@@ -406,24 +444,27 @@ def absorb_small(inst: np.ndarray, min_px: int) -> np.ndarray:
 
 def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig, static: bool | None = None) -> list[np.ndarray]:
     """Instance maps of frames whose D×H×W embeddings are all numpy arrays or all tensors on one torch device
-    (``static`` as in :func:`_meanshift_frames`)."""
+    (``static`` as in :func:`_meanshift_frames`). The host's share of the work comes before the first transfer to the
+    device, so it overlaps what the device still runs (the network's forward pass)."""
     xp = _namespace(embs[0] if embs else None)
-    out, pixels, zs, xs = [], [], [], []
+    out, frames = [], []
     for emb, fg in zip(embs, fg_masks):
-        emb = xp.asarray(emb, dtype=xp.float32)
         fg = np.asarray(fg, dtype=bool)
         if emb.ndim != 3 or tuple(emb.shape[1:]) != fg.shape:
             raise ValueError(f"emb must be D×H×W matching fg_mask H×W, got {tuple(emb.shape)} and {fg.shape}")
         out.append(np.zeros(fg.shape, np.int32))
-        vs, us = np.nonzero(fg)
-        if len(vs):
-            pixels.append((out[-1], vs, us))
-            zs.append(emb[:, xp.asarray(vs), xp.asarray(us)].T)
-            xs.append(xp.asarray(np.stack([us, vs], 1).astype(np.float32) / float(max(fg.shape))))
-    if zs:
-        labels = _meanshift_frames(zs, xs if cfg.spatial_sigma > 0 else None, cfg, xp, static)
-        for (o, vs, us), lab in zip(pixels, labels):
-            o[vs, us] = _asnumpy(lab) + 1
+        flat = np.flatnonzero(fg)
+        if len(flat):
+            vs, us = np.divmod(flat, fg.shape[1])
+            frames.append((len(out) - 1, flat, vs, us, np.stack([us, vs], 1).astype(np.float32) / float(max(fg.shape)),
+                           _subsample(len(flat), cfg)))
+    if frames:
+        zs = [xp.asarray(embs[f], dtype=xp.float32).reshape(len(embs[f]), -1)[:, xp.asarray(flat)].T
+              for f, flat, *_ in frames]
+        xs = [xp.asarray(xy) for *_, xy, _ in frames] if cfg.spatial_sigma > 0 else None
+        labels = _meanshift_frames(zs, xs, cfg, xp, static, subs=[sub for *_, sub in frames])
+        for (f, _, vs, us, _, _), lab in zip(frames, labels):
+            out[f][vs, us] = lab + 1
     return [absorb_small(split_components(o, cfg.connectivity), cfg.min_component_px) for o in out]
 
 
