@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, split_components, vmf_meanshift
+from selfseg.method.meanshift import (MeanShiftConfig, _merge_modes, _subsample, absorb_small, cluster_frame,
+                                     split_components, vmf_meanshift)
 
 
 def unit(x):
@@ -144,3 +145,27 @@ def test_border_counts_count_every_4_neighbour_pair():
                     want[int(a)][b] += 1
                     want[b][int(a)] += 1
         assert _border_counts(inst, int(inst.max())) == want
+
+
+def test_modes_merge_densest_first_into_the_first_close_kept_mode():
+    """A chain a–b–c (a, c not close): b joins the denser a, c then starts its own cluster; d is close to both a and
+    c and joins a, the first kept; e is close to a in embedding but farther than merge_xy, so it stays apart."""
+    deg = np.deg2rad
+    ang = {"a": 0.0, "b": 40.0, "c": 80.0, "d": 40.0, "e": 0.0}  # cos 40° = .77 ≥ .7, cos 80° = .17
+    mu = np.array([[np.cos(deg(v)), np.sin(deg(v)), 0.0] for v in ang.values()], np.float32)
+    p = np.array([[0, 0], [0.1, 0], [0.2, 0], [0.1, 0.1], [0.9, 0]], np.float32)
+    density = np.array([5.0, 4.0, 3.0, 2.0, 1.0], np.float32)
+    cfg = MeanShiftConfig(merge_threshold=0.7, merge_xy=0.3)
+    np.testing.assert_array_equal(_merge_modes(mu, p, density, cfg), [0, 0, 1, 0, 2])
+    np.testing.assert_array_equal(_merge_modes(mu, None, density, cfg), [0, 0, 1, 0, 0])
+    c_densest = np.array([4.0, 3.0, 5.0, 2.0, 1.0], np.float32)  # c keeps id 0, a starts id 1, b and d join c
+    np.testing.assert_array_equal(_merge_modes(mu, p, c_densest, cfg), [1, 0, 0, 0, 2])
+
+
+@pytest.mark.parametrize("n", [1, 4000, 4001, 15002, 200000, 250000])
+def test_subsample_is_the_sorted_seeded_choice(n):
+    """The points mode finding runs on: numpy's seeded choice without replacement, sorted (drawn without its final
+    shuffle and sorted through a mask, the same set)."""
+    cfg = MeanShiftConfig(max_pixels=4000, seed=3)
+    want = np.arange(n) if n <= 4000 else np.sort(np.random.default_rng(3).choice(n, 4000, replace=False))
+    np.testing.assert_array_equal(_subsample(n, cfg), want)
