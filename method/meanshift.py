@@ -335,7 +335,9 @@ def _meanshift_frames(zs: list, xs: list | None, cfg: MeanShiftConfig, xp, stati
     # Every point's nearest taken mode (B×M), then on the host: the modes merge and clusters are ranked by size.
     log_k = _log_kernel(_stack_padded(zs, xp), None if xs is None else _stack_padded(xs, xp), m[..., :d],
                         None if x is None else m[..., d:], cfg.kappa, float(cfg.spatial_sigma), xp)
-    nearest = xp.argmax(xp.where(taken[:, None, :], log_k, -xp.inf), axis=-1)
+    if xp is not np or not taken.all():  # (on a device, no check: it would wait for the device)
+        log_k = xp.where(taken[:, None, :], log_k, -xp.inf)
+    nearest = xp.argmax(log_k, axis=-1)
     m, density, taken, nearest = _to_host(m, density, taken, nearest)
     out = []
     for f, t in enumerate(taken):
