@@ -449,24 +449,27 @@ def _cluster(embs: list, fg_masks: list, cfg: MeanShiftConfig, static: bool | No
     (``static`` as in :func:`_meanshift_frames`). The host's share of the work comes before the first transfer to the
     device, so it overlaps what the device still runs (the network's forward pass)."""
     xp = _namespace(embs[0] if embs else None)
-    out, frames = [], []
-    for emb, fg in zip(embs, fg_masks):
+    out, pixels = [], []  # pixels: (frame index, flat indices of its foreground pixels) of non-empty frames
+    for i, (emb, fg) in enumerate(zip(embs, fg_masks)):
         fg = np.asarray(fg, dtype=bool)
         if emb.ndim != 3 or tuple(emb.shape[1:]) != fg.shape:
             raise ValueError(f"emb must be D×H×W matching fg_mask H×W, got {tuple(emb.shape)} and {fg.shape}")
         out.append(np.zeros(fg.shape, np.int32))
         flat = np.flatnonzero(fg)
         if len(flat):
-            vs, us = np.divmod(flat, fg.shape[1])
-            frames.append((len(out) - 1, flat, vs, us, np.stack([us, vs], 1).astype(np.float32) / float(max(fg.shape)),
-                           _subsample(len(flat), cfg)))
-    if frames:
-        zs = [xp.asarray(embs[f], dtype=xp.float32).reshape(len(embs[f]), -1)[:, xp.asarray(flat)].T
-              for f, flat, *_ in frames]
-        xs = [xp.asarray(xy) for *_, xy, _ in frames] if cfg.spatial_sigma > 0 else None
-        labels = _meanshift_frames(zs, xs, cfg, xp, static, subs=[sub for *_, sub in frames])
-        for (f, _, vs, us, _, _), lab in zip(frames, labels):
-            out[f][vs, us] = lab + 1
+            pixels.append((i, flat))
+    if pixels:
+        subs = [_subsample(len(flat), cfg) for _, flat in pixels]
+        xys = None
+        if cfg.spatial_sigma > 0:  # (u, v) / max(H, W)
+            xys = [np.stack(np.divmod(flat, out[i].shape[1])[::-1], 1).astype(np.float32) / float(max(out[i].shape))
+                   for i, flat in pixels]
+        # Transfers from here on.
+        zs = [xp.asarray(embs[i], dtype=xp.float32).reshape(len(embs[i]), -1)[:, xp.asarray(flat)].T
+              for i, flat in pixels]
+        xs = None if xys is None else [xp.asarray(xy) for xy in xys]
+        for (i, flat), labels in zip(pixels, _meanshift_frames(zs, xs, cfg, xp, static, subs)):
+            out[i].reshape(-1)[flat] = labels + 1
     return [absorb_small(split_components(o, cfg.connectivity), cfg.min_component_px) for o in out]
 
 
