@@ -116,9 +116,18 @@ def check_checkout(rec: dict) -> None:
     if changed:
         raise FreezeError(f"HEAD {head[:10]} differs from the freeze commit {rec['commit'][:10]} in "
                           f"{', '.join(changed[:5])}{' …' if len(changed) > 5 else ''}: that is a new freeze")
-    dirty = [line[3:] for line in _git("status", "--porcelain").splitlines()]
+    dirty = uncommitted_frozen_paths()
     if dirty:
         raise FreezeError(f"uncommitted changes ({', '.join(dirty[:5])}): results would not name their code")
+
+
+def uncommitted_frozen_paths() -> list[str]:
+    """Files outside :data:`UNFROZEN` that are modified, staged or untracked in this checkout (a board written into
+    ``leaderboards/`` while the seeds run is not one of them)."""
+    paths = ("--", ".", *(f":!{p}" for p in UNFROZEN))
+    changed = _git("diff", "--name-only", "HEAD", *paths).splitlines()
+    untracked = _git("ls-files", "--others", "--exclude-standard", *paths).splitlines()
+    return sorted(set(changed + untracked))
 
 
 def _check_records(rec: dict, seed: int, groups: dict) -> None:

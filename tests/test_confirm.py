@@ -3,6 +3,7 @@ import subprocess
 
 import pytest
 
+from selfseg.eval import confirm
 from selfseg.eval.cli import main as evaluate
 from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
                                check_checkout, fresh_seeds, frozen_paths_differ, main)
@@ -134,3 +135,30 @@ def test_a_checkout_whose_code_moved_since_the_freeze_may_not_run_it():
     with pytest.raises(FreezeError, match="that is a new freeze"):
         check_checkout({"commit": first})
     assert pooled_videos([], "ours") == {}
+
+
+def test_only_uncommitted_code_or_configs_stop_a_frozen_checkout(tmp_path, monkeypatch):
+    """A board written into leaderboards/ (what confirm.sh does at its end) or a note under docs/ leaves the checkout
+    runnable; a modified code file or an untracked config does not, and the refusal names it."""
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    for path, text in (("method/x.py", "a = 1\n"), ("configs/c.yaml", "k: 1\n"), ("leaderboards/calibrated.md", "# b\n")):
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text(text)
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "freeze")
+    monkeypatch.setattr(confirm, "ROOT", tmp_path)
+    rec = {"commit": confirm._git("rev-parse", "HEAD")}
+    (tmp_path / "leaderboards/calibrated.md").write_text("# the board, rebuilt\n")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs/note.md").write_text("a note\n")
+    check_checkout(rec)
+    (tmp_path / "method/x.py").write_text("a = 2\n")
+    with pytest.raises(FreezeError, match=r"uncommitted changes \(method/x\.py\)"):
+        check_checkout(rec)
+    git("checkout", "method/x.py")
+    (tmp_path / "configs/new.yaml").write_text("k: 2\n")
+    with pytest.raises(FreezeError, match=r"\(configs/new\.yaml\)"):
+        check_checkout(rec)
