@@ -14,7 +14,8 @@ tensors on ``--device`` (the torch path, one frame and ``--batch`` frames of dif
 batch), with the host-side connected-component part on its own. ``fps`` is one frame end to end with
 the clustering the methods use on that device (numpy on the CPU, torch on a GPU), the network and the clustering
 timed apart and added; ``fps_numpy`` and ``fps_torch`` with each; ``fps_pipeline`` the two in one call as a method
-runs them (host work of the clustering overlaps the network on a GPU). Reports the fastest wall and CPU time of several runs, since the cores may be
+runs them (host work of the clustering overlaps the network on a GPU). Reports the fastest wall and CPU time of
+several runs, since the cores may be
 shared (load average recorded). Training throughput is full training steps (batch, crop and
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
