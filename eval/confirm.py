@@ -9,11 +9,16 @@
     python -m selfseg.eval.confirm compare --results RESULTS --b ours-v2 --b depth-clustering
                                                                      # one seed's paired claims, with verdicts
 
+A preset may be frozen again (``--freeze calibrated-2`` with each command): a change after a freeze is a new
+freeze on new seeds, reported beside the first, never instead of it.
+
 **Freeze.** ``freeze`` records the clean HEAD as the freeze commit (its code and every ``configs/`` file's
 hash) in ``leaderboards/<preset>-freeze.json``, to be committed at once. The fresh seeds are derived from the
 freeze commit's hash (:func:`fresh_seeds`), so nobody can have seen their data before the freeze existed, and
 no seed can be picked because it wins; a change to code or configs after the freeze is a new freeze, hence new
-seeds. ``check`` refuses a checkout whose code or configs differ from the freeze commit's (only
+seeds (never a development seed nor an earlier freeze's seed of the preset). Each freeze has a name (the preset's
+own for the first; ``<preset>-2`` and so on after it), its record ``leaderboards/<name>-freeze.json`` and its own
+section of the preset's leaderboard. ``check`` refuses a checkout whose code or configs differ from the freeze commit's (only
 ``leaderboards/``, ``docs/`` and ``README.md`` may move on), and ``board`` refuses any result record that
 ran from such a commit or from a dirty tree.
 
@@ -32,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import re
 import subprocess
 import sys
 from datetime import datetime, timezone
@@ -43,7 +49,7 @@ from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
 from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
-FREEZE_JSON = "leaderboards/{preset}-freeze.json"  # the freeze record, committed right after the freeze commit
+FREEZE_JSON = "leaderboards/{name}-freeze.json"  # a freeze's record, committed right after the freeze commit
 SEED_RUN_DIR = "seed-{seed}"  # one fresh seed's run folder (scripts/benchmark.sh RUN) under the runs folder
 SEED_RESULTS_DIR = SEED_RUN_DIR + "/results"
 # Paths that may change after the freeze without making it a new one: what is published, not what computes it.
@@ -52,6 +58,9 @@ DEVELOPMENT_SEEDS = frozenset({0, 1, 7, 11})  # used while choosing settings (1:
 N_SEEDS = 3
 BEGIN = "<!-- BEGIN CONFIRMATION (selfseg.eval.confirm; edits inside are overwritten) -->"
 END = "<!-- END CONFIRMATION -->"
+# A later freeze's section has markers of its own name, so every freeze of a preset stays on its page.
+NAMED_BEGIN = "<!-- BEGIN CONFIRMATION {name} (selfseg.eval.confirm; edits inside are overwritten) -->"
+NAMED_END = "<!-- END CONFIRMATION {name} -->"
 # The protocol's rows, in the order shown; ``ours`` − each of the others is a claim.
 BASELINES = ("supervised", "depth-clustering", "lccp-frame", "sdmaskrcnn-sim", "uois-sim", "fg-components")
 ABLATIONS = ("ours-v2", "ours-v3", "ours-v4", "ours-paper-pruning")
@@ -66,12 +75,13 @@ def _git(*args: str) -> str:
     return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, check=True).stdout.strip()
 
 
-def fresh_seeds(commit: str, n: int = N_SEEDS) -> list[int]:
-    """``n`` dataset seeds in [100000, 1000000) derived from the freeze commit's hash, never a development seed."""
+def fresh_seeds(commit: str, n: int = N_SEEDS, spent: frozenset[int] = frozenset()) -> list[int]:
+    """``n`` dataset seeds in [100000, 1000000) derived from the freeze commit's hash, never a development seed nor
+    one of ``spent`` (an earlier freeze's)."""
     seeds, k = [], 0
     while len(seeds) < n:
         s = 100_000 + int(hashlib.sha256(f"{commit}:{k}".encode()).hexdigest()[:12], 16) % 900_000
-        if s not in DEVELOPMENT_SEEDS and s not in seeds:
+        if s not in DEVELOPMENT_SEEDS and s not in spent and s not in seeds:
             seeds.append(s)
         k += 1
     return seeds
@@ -83,30 +93,60 @@ def frozen_paths_differ(freeze_commit: str, commit: str) -> list[str]:
     return out.splitlines()
 
 
-def freeze(preset: str, n_seeds: int = N_SEEDS) -> dict:
-    """Record the clean HEAD as the freeze of ``preset``; refuses a dirty tree or an existing record."""
-    path = ROOT / FREEZE_JSON.format(preset=preset)
+def _freeze_name(preset: str, name: str | None) -> str:
+    name = name or preset
+    if not re.fullmatch(rf"{re.escape(preset)}(-[0-9]+)?", name):
+        raise FreezeError(f"freeze name {name!r}: expected {preset!r} (the first) or {preset}-N (a later one)")
+    return name
+
+
+def spent_seeds(preset: str, but: str | None = None) -> frozenset[int]:
+    """The fresh seeds of every recorded freeze of ``preset`` (except the one named ``but``)."""
+    spent = set()
+    for path in sorted((ROOT / "leaderboards").glob("*-freeze.json")):
+        rec = read_json(path)
+        if rec.get("preset") == preset and rec.get("name", preset) != but:
+            spent.update(rec.get("seeds", []))
+    return frozenset(spent)
+
+
+def freeze(preset: str, n_seeds: int = N_SEEDS, name: str | None = None) -> dict:
+    """Record the clean HEAD as the freeze ``name`` of ``preset`` (default: the preset's first); refuses a dirty
+    tree or an existing record of that name. The seeds avoid every earlier freeze's of the preset."""
+    name = _freeze_name(preset, name)
+    path = ROOT / FREEZE_JSON.format(name=name)
     if path.exists():
-        raise FreezeError(f"{path}: a freeze is already recorded; a new freeze is a new record (move this one into "
-                          "docs/experiments/ with its results first)")
+        raise FreezeError(f"{path}: a freeze is already recorded; a new freeze is a new record "
+                          f"(--freeze {preset}-N)")
     if _git("status", "--porcelain"):
         raise FreezeError("the working tree has uncommitted changes: commit them first, the freeze is a commit")
     commit = _git("rev-parse", "HEAD")
     configs = {p: hashlib.sha256((ROOT / p).read_bytes()).hexdigest()[:16]
                for p in _git("ls-files", "configs").splitlines()}
-    rec = {"preset": preset, "commit": commit, "committed_utc": _git("show", "-s", "--format=%cI", commit),
+    rec = {"preset": preset, "name": name, "commit": commit,
+           "committed_utc": _git("show", "-s", "--format=%cI", commit),
            "recorded_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           "seeds": fresh_seeds(commit, n_seeds), "configs": configs}
+           "seeds": fresh_seeds(commit, n_seeds, spent_seeds(preset, but=name)), "configs": configs}
     write_json(path, rec)
     return rec
 
 
-def read_freeze(preset: str) -> dict:
-    path = ROOT / FREEZE_JSON.format(preset=preset)
+def read_freeze(preset: str, name: str | None = None) -> dict:
+    """The record of freeze ``name`` of ``preset`` (default: the preset's first), with its ``name`` filled in."""
+    name = _freeze_name(preset, name)
+    path = ROOT / FREEZE_JSON.format(name=name)
     rec = read_json(path)
     if rec.get("preset") != preset or not isinstance(rec.get("seeds"), list) or "commit" not in rec:
         raise FileFormatError(f"{path}: not a freeze record of preset {preset!r}")
-    return rec
+    return {**rec, "name": rec.get("name", preset)}
+
+
+def markers(rec: dict) -> tuple[str, str]:
+    """The begin and end markers of freeze ``rec``'s section of the leaderboard page."""
+    name = rec.get("name", rec["preset"])
+    if name == rec["preset"]:
+        return BEGIN, END
+    return NAMED_BEGIN.format(name=name), NAMED_END.format(name=name)
 
 
 def check_checkout(rec: dict) -> None:
@@ -232,9 +272,12 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
     head = ([f"{s.label} (development)" for s in dev_seeds] + [s.label for s in fresh]
             + [f"pooled, {len(fresh)} fresh seeds"])
     names = [n for n in ("oracle", "ours", *BASELINES, *ABLATIONS) if any(n in s.runs for s in seeds)]
-    lines = [BEGIN, "", "## Confirmation on fresh seeds", "",
+    name = rec.get("name", rec["preset"])
+    begin, end = markers(rec)
+    title = "## Confirmation on fresh seeds" + ("" if name == rec["preset"] else f": freeze `{name}`")
+    lines = [begin, "", title, "",
              f"Freeze commit `{rec['commit'][:10]}` ({rec['committed_utc']}), recorded {rec['recorded_utc']} in "
-             f"`{FREEZE_JSON.format(preset=rec['preset'])}`. Fresh seeds {', '.join(map(str, rec['seeds']))}: derived "
+             f"`{FREEZE_JSON.format(name=name)}`. Fresh seeds {', '.join(map(str, rec['seeds']))}: derived "
              f"from the freeze commit's hash, so no one saw their data before the freeze, and each ran once with the "
              f"frozen code and configs (every result record checked: {len(fresh)} of {len(rec['seeds'])} seeds "
              "finished). Development seeds are shown beside them and never pooled.", "",
@@ -277,7 +320,7 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
                 recs = three_d.get(label, {}).get(n)
                 cells.append(fmt(recs[0]["metrics"]["IoU"]) if recs else "—")
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
-    return "\n".join(lines + (noise or []) + ["", END]) + "\n"
+    return "\n".join(lines + (noise or []) + ["", end]) + "\n"
 
 
 def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path, noisy_runs: Path | None = None) -> Path:
@@ -290,7 +333,7 @@ def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path, noisy_r
         noise = noise_markdown(rec, fresh, three_d, noisy, noisy_3d) if noisy else None
     text = board_markdown(rec, dev_seeds, fresh, three_d, noise)
     atomic_write_text(out, replace_generated(out.read_text() if out.is_file() else None, text,
-                                             f"Leaderboard: {rec['preset']}", BEGIN, END))
+                                             f"Leaderboard: {rec['preset']}", *markers(rec)))
     return out
 
 
@@ -323,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m selfseg.eval.confirm", description=__doc__.splitlines()[0])
     p.add_argument("command", choices=("freeze", "seeds", "check", "board", "compare"))
     p.add_argument("--preset", default="calibrated")
+    p.add_argument("--freeze", metavar="NAME", help="which freeze of the preset: the preset's name for the first "
+                   "(default), <preset>-2 and so on for later ones")
     p.add_argument("--n-seeds", type=int, default=N_SEEDS, help="freeze: how many fresh seeds")
     p.add_argument("--runs", type=Path, default=Path("runs/confirm"),
                    help="board: the folder holding each fresh seed's run (seed-<S>/results)")
@@ -340,17 +385,17 @@ def main(argv: list[str] | None = None) -> int:
         p.error("compare needs --results and at least one --b")
     try:
         if args.command == "freeze":
-            rec = freeze(args.preset, args.n_seeds)
+            rec = freeze(args.preset, args.n_seeds, args.freeze)
             print(f"freeze of {args.preset}: commit {rec['commit'][:10]}, seeds {' '.join(map(str, rec['seeds']))}; "
-                  f"commit {FREEZE_JSON.format(preset=args.preset)} now")
+                  f"commit {FREEZE_JSON.format(name=rec['name'])} now")
         elif args.command == "seeds":
-            print("\n".join(map(str, read_freeze(args.preset)["seeds"])))
+            print("\n".join(map(str, read_freeze(args.preset, args.freeze)["seeds"])))
         elif args.command == "check":
-            check_checkout(read_freeze(args.preset))
+            check_checkout(read_freeze(args.preset, args.freeze))
         elif args.command == "compare":
             print("\n".join(compare_lines(args.results, args.a, args.b)))
         else:
-            print(board(read_freeze(args.preset), args.runs, args.dev,
+            print(board(read_freeze(args.preset, args.freeze), args.runs, args.dev,
                         args.out or ROOT / "leaderboards" / f"{args.preset}.md", args.noisy_runs))
     except (FreezeError, FileFormatError, FileNotFoundError) as e:
         print(f"confirm: error: {e}", file=sys.stderr)

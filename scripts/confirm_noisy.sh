@@ -4,10 +4,11 @@
 # (the one scripts/confirm.sh runs in; `confirm check` refuses any other). The key rows only: the geometric
 # baselines, V2, ours, the supervised bound, sdmaskrcnn-sim (trained on the noisy disjoint-object set) and
 # Table II, as jobs on both cores (scripts/queue.sh). Resumable; each seed goes to RUNS/seed-<S>, then
-#   python -m selfseg.eval.confirm board --preset PRESET --runs EXACT_RUNS --noisy-runs RUNS
+#   python -m selfseg.eval.confirm board --preset PRESET [--freeze NAME] --runs EXACT_RUNS --noisy-runs RUNS
 # puts the drop exact − noisy beside the exact seeds. This script sequences the freeze's own commands; it may be
 # newer than the freeze (the freeze's checkout need not have it).
-# Usage: scripts/confirm_noisy.sh FROZEN RUNS [PRESET]   (PRESET: calibrated or cluttered; default calibrated)
+# Usage: scripts/confirm_noisy.sh FROZEN RUNS [PRESET]   (PRESET: calibrated or cluttered; default calibrated;
+# FREEZE=<preset>-N for a later freeze of the preset)
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 [ $# -ge 2 ] || { echo "usage: scripts/confirm_noisy.sh FROZEN RUNS [PRESET]" >&2; exit 2; }
@@ -20,7 +21,8 @@ PRESET=${3:-calibrated}
 disjoint_pool "$PRESET-noisy" || { echo "scripts/confirm_noisy.sh: no noisy variant of preset '$PRESET'" >&2; exit 2; }
 cd "$FROZEN"
 BIN=.venv/bin
-$BIN/python -m selfseg.eval.confirm check --preset "$PRESET"
+FZ=(); [ -n "${FREEZE:-}" ] && FZ=(--freeze "$FREEZE")
+$BIN/python -m selfseg.eval.confirm check --preset "$PRESET" "${FZ[@]}"
 OURS=configs/ours-$PRESET.yaml
 SUP=configs/supervised-$PRESET.yaml
 [ -f "$SUP" ] || SUP=configs/supervised-calibrated.yaml  # a preset without its own supervised config runs calibrated's
@@ -39,7 +41,7 @@ job_generate-disjoint() {
 job_sdmaskrcnn-sim() { ev sdmaskrcnn-sim sdmaskrcnn-sim --set train_data="$RUN/data-disjoint"; }
 job_evaluate3d() { $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS" --quiet; }
 
-for seed in $($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET"); do
+for seed in $($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET" "${FZ[@]}"); do
   echo "scripts/confirm_noisy.sh: $PRESET-noisy seed $seed ($(date -u +%FT%TZ))"
   RUN=$RUNS/seed-$seed
   DATA=$RUN/data
@@ -47,5 +49,5 @@ for seed in $($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET"); do
   $BIN/generate_scenes --preset "$PRESET-noisy" --seed "$seed" --out "$DATA" --workers 2 --quiet
   run_queue 2 "$RUN/logs" ours-v2 generate-disjoint sdmaskrcnn-sim:generate-disjoint ours:ours-v2 supervised \
     evaluate3d:ours-v2 geometric
-  $BIN/python -m selfseg.eval.confirm check --preset "$PRESET"  # nothing moved while the seed ran
+  $BIN/python -m selfseg.eval.confirm check --preset "$PRESET" "${FZ[@]}"  # nothing moved while the seed ran
 done

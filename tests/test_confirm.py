@@ -5,8 +5,8 @@ import pytest
 
 from selfseg.eval import confirm
 from selfseg.eval.cli import main as evaluate
-from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, ROOT, SEED_RESULTS_DIR, FreezeError, board,
-                               check_checkout, fresh_seeds, frozen_paths_differ, main)
+from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, END, NAMED_BEGIN, ROOT, SEED_RESULTS_DIR, FreezeError,
+                                  board, check_checkout, freeze, fresh_seeds, frozen_paths_differ, main, read_freeze)
 from selfseg.eval.leaderboard import BEGIN as BUILD_BEGIN
 from selfseg.eval.pooled import paired, pooled_videos, score
 from selfseg.fileio import read_json, write_json
@@ -26,6 +26,8 @@ def test_fresh_seeds_follow_the_freeze_commit_and_avoid_development_seeds():
     assert all(100_000 <= s < 1_000_000 and s not in DEVELOPMENT_SEEDS for s in a)
     assert fresh_seeds("1" + "0" * 39) != a  # a new freeze draws new seeds
     assert len(fresh_seeds("0" * 40, 5)) == 5 and fresh_seeds("0" * 40, 5)[:3] == a
+    # an earlier freeze's seeds are spent: the draw skips them and takes the next
+    assert fresh_seeds("0" * 40, 3, frozenset(a[:1])) == fresh_seeds("0" * 40, 4)[1:]
 
 
 def test_paired_difference_verdicts_on_known_videos():
@@ -74,6 +76,22 @@ def test_board_pools_the_fresh_seeds_and_keeps_the_build_section(runs, tmp_path)
     assert "| ours | 1.000 (1.000–1.000) |" in text
     board(rec, root, [("seed 0", root / SEED_RESULTS_DIR.format(seed=101))], page)
     assert page.read_text() == text  # idempotent
+
+
+def test_a_second_freezes_board_is_a_section_of_its_own(runs, tmp_path):
+    """A later freeze of the preset writes its own section (its name in the markers and the title) and leaves the
+    first freeze's section as it was; rebuilding either leaves the other alone."""
+    root, rec = runs
+    page = tmp_path / "analytic.md"
+    board(rec, root, [], page)
+    first = page.read_text()
+    board({**rec, "name": "analytic-2"}, root, [], page)
+    text = page.read_text()
+    assert text.startswith(first.rstrip("\n")) and text.count(BEGIN) == 1 and text.count(END) == 1
+    assert text.count(NAMED_BEGIN.format(name="analytic-2")) == 1
+    assert "## Confirmation on fresh seeds: freeze `analytic-2`" in text and "`leaderboards/analytic-2-freeze.json`" in text
+    board(rec, root, [], page)
+    assert page.read_text() == text
 
 
 def test_compare_gives_one_seeds_paired_claims_with_verdicts(runs, capsys):
@@ -162,3 +180,33 @@ def test_only_uncommitted_code_or_configs_stop_a_frozen_checkout(tmp_path, monke
     (tmp_path / "configs/new.yaml").write_text("k: 2\n")
     with pytest.raises(FreezeError, match=r"\(configs/new\.yaml\)"):
         check_checkout(rec)
+
+
+def test_a_preset_frozen_twice_keeps_both_records_and_spends_no_seed_twice(tmp_path, monkeypatch):
+    """The first freeze is the preset's name; freezing it again under that name is refused; a second freeze is
+    `<preset>-2`, its own record, and draws none of the first's seeds; any other name is refused."""
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args], check=True,
+                       capture_output=True)
+
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs/c.yaml").write_text("k: 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "configs")
+    monkeypatch.setattr(confirm, "ROOT", tmp_path)
+    first = freeze("analytic")
+    assert first["name"] == "analytic" and (tmp_path / "leaderboards/analytic-freeze.json").is_file()
+    git("add", ".")
+    git("commit", "-qm", "freeze record")
+    with pytest.raises(FreezeError, match="already recorded"):
+        freeze("analytic")
+    with pytest.raises(FreezeError, match="expected 'analytic'"):
+        freeze("analytic", name="other")
+    (tmp_path / "configs/c.yaml").write_text("k: 2\n")
+    git("commit", "-qam", "a change after the freeze")
+    second = freeze("analytic", name="analytic-2")
+    assert second["commit"] != first["commit"] and not set(second["seeds"]) & set(first["seeds"])
+    assert read_freeze("analytic", "analytic-2")["seeds"] == second["seeds"]
+    assert read_freeze("analytic")["seeds"] == first["seeds"]
+    assert main(["seeds", "--preset", "analytic", "--freeze", "analytic-2"]) == 0
