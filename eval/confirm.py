@@ -8,6 +8,8 @@
                                                                      # the section of leaderboards/calibrated.md
     python -m selfseg.eval.confirm compare --results RESULTS --b ours-v2 --b depth-clustering
                                                                      # one seed's paired claims, with verdicts
+    python -m selfseg.eval.confirm compare --results NEW --against OLD  # every run of both folders (the same data),
+                                                                     # NEW − OLD: did a code change move a row?
 
 A preset may be frozen again (``--freeze calibrated-2`` with each command): a change after a freeze is a new
 freeze on new seeds, reported beside the first, never instead of it.
@@ -355,6 +357,23 @@ def compare_lines(results: Path, a: str, others: list[str]) -> list[str]:
     return lines
 
 
+def against_lines(results: Path, against: Path) -> list[str]:
+    """Every 2-D run in both folders (the same dataset, e.g. one seed run by two commits): its IoU in ``results``
+    − in ``against``, paired over the same test videos; a run in one folder only is named, not compared."""
+    new, old = (_split("", False, _only_dataset(r))[0] for r in (results, against))
+    both = [n for n in new.runs if n in old.runs]
+    if not both:
+        raise FileFormatError(f"{results}, {against}: no 2-D run in both")
+    lines = []
+    for n in both:
+        a, b = pooled_videos([new], n), pooled_videos([old], n)
+        d = paired(a, b)
+        lines.append(f"{n}: {fmt(frame_mean(a))} − {fmt(frame_mean(b))} = {d['mean']:+.3f} IoU, 95 % CI "
+                     f"[{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] over {d['n_videos']} test videos: {d['verdict']}")
+    only = sorted(set(new.runs) ^ set(old.runs))
+    return lines + ([f"in one folder only: {', '.join(only)}"] if only else [])
+
+
 def _dev_arg(text: str) -> tuple[str, Path]:
     label, sep, path = text.partition("=")
     if not sep or not label or not path:
@@ -380,9 +399,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--a", default="ours", help="compare: the run whose claims are tested (default ours)")
     p.add_argument("--b", action="append", default=[], metavar="NAME",
                    help="compare: a run to compare against, paired over the same test videos (repeatable)")
+    p.add_argument("--against", type=Path, metavar="RESULTS",
+                   help="compare: another results folder of the same data; every run in both, --results − --against")
     args = p.parse_args(argv)
-    if args.command == "compare" and (args.results is None or not args.b):
-        p.error("compare needs --results and at least one --b")
+    if args.command == "compare" and (args.results is None or bool(args.b) == bool(args.against)):
+        p.error("compare needs --results and either at least one --b or --against")
     try:
         if args.command == "freeze":
             rec = freeze(args.preset, args.n_seeds, args.freeze)
@@ -393,7 +414,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "check":
             check_checkout(read_freeze(args.preset, args.freeze))
         elif args.command == "compare":
-            print("\n".join(compare_lines(args.results, args.a, args.b)))
+            print("\n".join(against_lines(args.results, args.against) if args.against
+                             else compare_lines(args.results, args.a, args.b)))
         else:
             print(board(read_freeze(args.preset, args.freeze), args.runs, args.dev,
                         args.out or ROOT / "leaderboards" / f"{args.preset}.md", args.noisy_runs))

@@ -106,6 +106,20 @@ def test_compare_gives_one_seeds_paired_claims_with_verdicts(runs, capsys):
     assert capsys.readouterr().err.strip() == f"confirm: error: {results}: no 2-D results of 'ours-v2'"
 
 
+def test_compare_against_another_folder_pairs_every_run_both_have(runs, capsys):
+    """Two folders of the same data (here two 'seeds' of the analytic dataset, as if one seed run by two commits):
+    each run in both is paired with itself, unchanged scores read +0.000 inside the noise, and a run in one
+    folder only is named."""
+    root, _ = runs
+    a, b = (root / SEED_RESULTS_DIR.format(seed=s) for s in (101, 202))
+    assert main(["compare", "--results", str(a), "--against", str(b)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert sorted(line.split(":")[0] for line in lines) == ["depth-clustering", "ours"]
+    assert all("= +0.000 IoU" in line and line.endswith("over 3 test videos: inside the noise") for line in lines)
+    with pytest.raises(SystemExit):
+        main(["compare", "--results", str(a)])  # neither --b nor --against
+
+
 def test_board_reports_the_drop_with_noisy_depth_paired_per_video(runs, tmp_path):
     """The noisy variant of one fresh seed (here: `ours` becomes one segment, `depth-clustering` stays one
     segment): `ours` drops on every video, depth-clustering does not move, and the claims are retested."""
