@@ -118,16 +118,20 @@ class PairMatch:
 
 
 def cosine_distance(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
-    """n1×n2 matrix of 1 − cos between rows of ``f1`` and ``f2`` (rows are normalised here)."""
+    """n1×n2 matrix of 1 − cos between rows of ``f1`` and ``f2`` (rows are normalised here).
+
+    A zero row is a segment that no frame of φ1's feature pass saw (``segment_features``' ``seen`` False): it has
+    no feature, so it is at the largest distance, 2, from every row, and matching never maps it."""
     f1 = np.asarray(f1, dtype=np.float64)
     f2 = np.asarray(f2, dtype=np.float64)
     if f1.ndim != 2 or f2.ndim != 2 or f1.shape[1] != f2.shape[1]:
         raise ValueError(f"features must be n×D arrays of equal D, got {f1.shape} and {f2.shape}")
     n1 = np.linalg.norm(f1, axis=1, keepdims=True)
     n2 = np.linalg.norm(f2, axis=1, keepdims=True)
-    if (n1 == 0).any() or (n2 == 0).any():
-        raise ValueError("a feature vector is zero; cosine distance is undefined")
-    return 1.0 - (f1 / n1) @ (f2 / n2).T
+    d = 1.0 - (f1 / np.where(n1 == 0, 1.0, n1)) @ (f2 / np.where(n2 == 0, 1.0, n2)).T
+    d[(n1 == 0)[:, 0], :] = 2.0
+    d[:, (n2 == 0)[:, 0]] = 2.0
+    return d
 
 
 def _check_edges(edges: np.ndarray, n: int, name: str) -> np.ndarray:

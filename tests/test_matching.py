@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
-from selfseg.method.matching import (MatchConfig, SceneGraph, empty_match_cost, match_all, match_batch,
-                                     match_costs, match_graphs, match_stats, prefilter)
+from selfseg.method.matching import (MatchConfig, SceneGraph, cosine_distance, empty_match_cost, match_all,
+                                     match_batch, match_costs, match_graphs, match_stats, prefilter)
 
 
 def brute_force(C: np.ndarray, e1: np.ndarray, e2: np.ndarray, cfg: MatchConfig) -> float:
@@ -209,3 +209,20 @@ def test_match_all_every_component_pair_both_directions():
             assert i in src.components[m.src_comp] and k in tgt.components[m.tgt_comp]
     stats = match_stats(serial)
     assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0
+
+
+def test_a_segment_no_frame_saw_is_matched_to_nothing():
+    """A zero feature row (a segment φ1's feature frames never saw) is at distance 2 from everything, so the
+    match of a graph holding one maps every other node as before and never that one."""
+    rng = np.random.default_rng(11)
+    f = rng.normal(size=(4, 16))
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    edges = np.array([[0, 1], [1, 2], [2, 3]])
+    seen = match_graphs(f, edges, f, edges, MatchConfig())
+    assert seen.node_map == {0: 0, 1: 1, 2: 2, 3: 3}
+    blind = f.copy()
+    blind[2] = 0.0
+    d = cosine_distance(blind, f)
+    assert (d[2] == 2.0).all() and np.allclose(np.delete(d, 2, axis=0), np.delete(cosine_distance(f, f), 2, axis=0))
+    r = match_graphs(blind, edges, f, edges, MatchConfig())
+    assert 2 not in r.node_map and r.node_map == {0: 0, 1: 1, 3: 3}
