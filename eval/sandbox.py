@@ -202,8 +202,12 @@ def check_mounts(mounts: list[Mount], holds: list[str | os.PathLike], inside: li
 
 def bwrap_argv(exe: str, mounts: list[Mount], cwd: str) -> list[str]:
     """The ``bwrap`` command line (binary ``exe``) of a sandbox holding ``mounts`` (system links recreated as
-    links), started in ``cwd`` (an empty folder there unless a mount holds it); the command follows."""
-    argv = [exe, "--unshare-all", "--die-with-parent", "--new-session", "--proc", "/proc", "--dev", "/dev",
+    links), started in ``cwd`` (an empty folder there unless a mount holds it); the command follows.
+
+    The command is the PID namespace's process 1 (``--as-pid-1``): bwrap's own init would reap it, and its
+    CPU time and peak memory would then never reach the caller's ``RUSAGE_CHILDREN`` (what a benchmark's
+    steps record). When it exits, the kernel kills whatever else is left in the namespace, as before."""
+    argv = [exe, "--unshare-all", "--as-pid-1", "--die-with-parent", "--new-session", "--proc", "/proc", "--dev", "/dev",
             "--tmpfs", "/tmp", "--dir", SANDBOX_HOME, "--dir", SANDBOX_MPLCONFIGDIR]
     for dev in sorted(Path("/dev").glob("nvidia*")):  # CUDA, where there is a GPU
         argv += ["--dev-bind", str(dev), str(dev)]

@@ -672,3 +672,34 @@ def test_pools_programs_and_matplotlib_work(analytic_dataset, tmp_path):
     rec = run_fold(PoolUser, None, Dataset(analytic_dataset), 0, tmp_path, FAST, progress=False)
     assert rec["metrics"]["n_frames"] > 0 and rec["ground_truth_attempts"] == [] and rec["isolation"] == "sandbox"
     assert (tmp_path / WORK_DIR.format(name="pool-user", dataset="analytic", fold=0) / "fonts.png").stat().st_size
+
+
+class Burner(Method):
+    """Burns about half a second of CPU in fit and writes how much it burned (s) to its work folder."""
+
+    name = "burner"
+
+    def fit(self, train_videos):
+        start, x = time.process_time(), 0
+        while time.process_time() - start < 0.5:
+            x += 1
+        (self.workdir / "cpu_s").write_text(str(time.process_time() - start))
+
+    def segment(self, video, frame_id, fg_mask):
+        return fg_mask.astype(np.uint16)
+
+
+def test_a_sandboxed_methods_cpu_time_reaches_the_caller(analytic_dataset, tmp_path):
+    """The CPU time spent inside the sandbox is counted in the caller's RUSAGE_CHILDREN, which is what the
+    benchmark's steps record (lost when bwrap's own init reaps the method's process)."""
+    import resource
+
+    def cpu():
+        u = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return u.ru_utime + u.ru_stime
+
+    before = cpu()
+    rec = run_fold(Burner, None, Dataset(analytic_dataset), 0, tmp_path, FAST, progress=False)
+    assert rec["isolation"] == "sandbox"
+    burned = float((tmp_path / WORK_DIR.format(name="burner", dataset="analytic", fold=0) / "cpu_s").read_text())
+    assert burned >= 0.5 and cpu() - before >= burned
