@@ -37,7 +37,10 @@ ids.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
+import resource
 import time
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Literal, Sequence
 
@@ -48,6 +51,7 @@ from tqdm import tqdm
 
 from selfseg.executor import make_executor
 
+# "time_limit": the MILP stopped at a limit, its time limit or its node limit, so the match is not proven optimal
 Status = Literal["prefiltered_empty", "lp_integral", "milp_optimal", "time_limit"]
 
 
@@ -57,12 +61,19 @@ class MatchConfig:
 
     c_del_node: float = 0.1  # cost of deleting a source node (paper: 0.1)
     c_del_edge: float = 0.1  # cost of deleting a source edge (paper: 0.1)
-    time_limit_s: float = 20.0  # per MILP solve; hits are reported as status "time_limit"
+    time_limit_s: float = 20.0  # per MILP solve, wall-clock; hits are reported as status "time_limit"
+    # per MILP solve, HiGHS branch-and-bound nodes (None: no limit); hits are reported as status "time_limit" too.
+    # Unlike the time limit it does not depend on the machine or its load, so where solves reach a limit this one
+    # should be the one they reach, with time_limit_s far above it as a safety net.
+    node_limit: int | None = None
     lp_first: bool = True  # solve the LP relaxation first and accept it when integral
     prefilter: bool = True  # exact pre-filter bound and variable reduction (see prefilter())
     mip_rel_gap: float = 1e-7  # HiGHS relative gap at which a MILP solution counts as optimal
     int_tol: float = 1e-6  # an LP value within this of 0 or 1 counts as integral
     workers: int = 2  # processes for match_all when no executor is given (≤ 1: in-process)
+    # CPU seconds match_all may spend over all its tasks (None: no budget); past it, MatchBudgetError. Counted in
+    # CPU, not wall time, so the verdict does not depend on the machine's load (see match_all)
+    cpu_budget_s: float | None = None
     pairs_per_task: int = 8  # scene pairs solved as one stacked batch per executor task
 
 
@@ -80,6 +91,7 @@ class MatchResult:
     status: Status
     solve_s: float
     n_vars: int = 0  # x and y variables after the exact reduction (0 when prefiltered)
+    milp_nodes: int = 0  # branch-and-bound nodes of the MILP solve it took part in (0: none)
 
     @property
     def proven_optimal(self) -> bool:
@@ -115,6 +127,11 @@ class PairMatch:
     n_src_nodes: int
     n_src_edges: int
     result: MatchResult = field(repr=False)
+    cpu_s: float = 0.0  # its equal share of the CPU seconds of the task (scene pairs) that solved it
+
+
+class MatchBudgetError(RuntimeError):
+    """Matching spent more CPU seconds than ``MatchConfig.cpu_budget_s``."""
 
 
 def cosine_distance(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
@@ -348,10 +365,11 @@ def _stack(probs: Sequence[_Problem]):
     return c, A, b, off, row_off
 
 
-def _result(z: np.ndarray, p: _Problem, status: Status, share: float, cfg: MatchConfig) -> MatchResult:
+def _result(z: np.ndarray, p: _Problem, status: Status, share: float, cfg: MatchConfig,
+            milp_nodes: int = 0) -> MatchResult:
     """MatchResult of the integral solution ``z`` of ``p``; ``share`` is its part of the stacked solves (s)."""
     node_map, edge_map, cost = _decode(z, p, cfg)
-    return MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c))
+    return MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c), milp_nodes)
 
 
 def _solve_lp(probs: Sequence[_Problem], cfg: MatchConfig) -> tuple[list[np.ndarray | None], float]:
@@ -374,27 +392,33 @@ def _solve_lp(probs: Sequence[_Problem], cfg: MatchConfig) -> tuple[list[np.ndar
 
 
 def _solve_milp(probs: Sequence[_Problem], cfg: MatchConfig, lp_share: float) -> list[MatchResult]:
-    """Stacked MILP over ``probs``; one that stops at ``cfg.time_limit_s`` is re-solved block by block.
+    """Stacked MILP over ``probs``; one that stops at a limit (``cfg.time_limit_s``, ``cfg.node_limit``) is
+    re-solved block by block.
 
     ``lp_share`` (s) is each block's share of the LP before it.
     """
     start = time.perf_counter()
     c, A, b, off, _ = _stack(probs)
+    options = {"time_limit": cfg.time_limit_s, "mip_rel_gap": cfg.mip_rel_gap}
+    if cfg.node_limit is not None:
+        options["node_limit"] = cfg.node_limit
     res = milp(c, integrality=np.ones(len(c)), bounds=Bounds(0, 1),
-               constraints=LinearConstraint(A, -np.inf, b),
-               options={"time_limit": cfg.time_limit_s, "mip_rel_gap": cfg.mip_rel_gap})
-    if res.status == 1 and len(probs) > 1:
-        # the stacked MILP stopped at the time limit: isolate the hard blocks
+               constraints=LinearConstraint(A, -np.inf, b), options=options)
+    nodes = int(getattr(res, "mip_node_count", 0) or 0)
+    # scipy reports HiGHS's node limit as status 4 ("Solution limit reached", HiGHS status 16)
+    at_node_limit = res.status == 4 and cfg.node_limit is not None and nodes >= cfg.node_limit
+    if (res.status == 1 or at_node_limit) and len(probs) > 1:
+        # the stacked MILP stopped at a limit: isolate the hard blocks
         return [r for p in probs for r in _solve_milp([p], cfg, lp_share)]
     if res.status == 0:
         status: Status = "milp_optimal"
-    elif res.status == 1:  # iteration or time limit: the solution (if any) is not proven optimal
+    elif res.status == 1 or at_node_limit:  # the solution (if any) is not proven optimal
         status = "time_limit"
     else:
         raise RuntimeError(f"MILP failed: status {res.status} ({res.message})")
     x = np.round(res.x) if res.x is not None else np.zeros(len(c))
     share = lp_share + (time.perf_counter() - start) / len(probs)
-    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg) for n, p in enumerate(probs)]
+    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg, nodes) for n, p in enumerate(probs)]
 
 
 def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -407,10 +431,10 @@ def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     blocks, so each block of the LP optimum is an optimum of its own relaxation, and a block
     that is integral is an optimal BLP solution ("lp_integral"): a relaxation's optimum that is
     feasible for the BLP is optimal for it. The non-integral blocks are stacked into one MILP
-    (``milp``, HiGHS, ``cfg.time_limit_s``); at a proven optimum of a separable problem every
-    block is optimal ("milp_optimal", within ``cfg.mip_rel_gap`` of the stacked objective). If the MILP stops at the time limit its blocks get
+    (``milp``, HiGHS, ``cfg.time_limit_s`` and ``cfg.node_limit``); at a proven optimum of a separable problem every
+    block is optimal ("milp_optimal", within ``cfg.mip_rel_gap`` of the stacked objective). If the MILP stops at a limit its blocks get
     status "time_limit" with the best solution found (the empty match if there is none); a
-    stacked MILP that hits the limit is re-solved block by block, so that only the hard blocks
+    stacked MILP that hits a limit is re-solved block by block, so that only the hard blocks
     are reported as "time_limit". Stacking turns hundreds of tiny solves into two, which
     removes HiGHS's per-call overhead (tens of ms for a MILP).
 
@@ -463,6 +487,7 @@ def _component_edges(edges: np.ndarray, comps: Sequence[np.ndarray], n_nodes: in
 def _match_scene_pairs(pairs: Sequence[tuple[int, int]], graphs: dict[int, SceneGraph],
                        cfg: MatchConfig) -> list[PairMatch]:
     """All component pairs of the given scene pairs, both directions, solved as one batch (one task)."""
+    cpu0 = time.process_time()
     meta, problems = [], []
     for a, b in pairs:
         for s, t in ((a, b), (b, a)):
@@ -479,7 +504,23 @@ def _match_scene_pairs(pairs: Sequence[tuple[int, int]], graphs: dict[int, Scene
         r.node_map = {int(src[i]): int(tgt[k]) for i, k in r.node_map.items()}
         r.edge_map = [((int(src[i]), int(src[j])), (int(tgt[k]), int(tgt[l]))) for (i, j), (k, l) in r.edge_map]
         out.append(PairMatch(s, ci, t, cj, len(src), n_edges, r))
+    share = (time.process_time() - cpu0) / max(1, len(out))
+    for m in out:
+        m.cpu_s = share
     return out
+
+
+def _children_cpu_s() -> float:
+    """User + system CPU seconds of this process's reaped children."""
+    u = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return u.ru_utime + u.ru_stime
+
+
+def _limit_cpu(seconds: float) -> None:
+    """Pool-worker initializer: the kernel stops this process (SIGXCPU) once it has used ``seconds`` of CPU."""
+    soft = int(math.ceil(seconds + time.process_time()))
+    _, hard = resource.getrlimit(resource.RLIMIT_CPU)
+    resource.setrlimit(resource.RLIMIT_CPU, (soft if hard == resource.RLIM_INFINITY else min(soft, hard), hard))
 
 
 def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
@@ -492,28 +533,58 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
     processes is used (in-process when ``workers`` ≤ 1); any ``concurrent.futures.Executor`` (e.g.
     ``make_executor("ray")``) can be passed instead. Results are sorted by (src_scene, src_comp, tgt_scene, tgt_comp), so the output
     does not depend on scheduling.
+
+    With ``cfg.cpu_budget_s``, the tasks' CPU seconds (measured in whichever process runs them) are summed as
+    they finish, and MatchBudgetError is raised once the sum passes the budget. Without an ``executor`` the
+    tasks then run in a pool of ``max(1, cfg.workers)`` processes whose CPU the kernel limits to the budget
+    (RLIMIT_CPU), so one task that runs past the whole budget is stopped too; a given executor's tasks are
+    only counted when they finish.
     """
     pairs = [(a, b) for a in range(len(scenes)) for b in range(a + 1, len(scenes))]
     step = max(1, cfg.pairs_per_task)
     tasks = [pairs[t:t + step] for t in range(0, len(pairs), step)]
     args = [(task, {s: scenes[s] for pair in task for s in pair}, cfg) for task in tasks]
     out: list[PairMatch] = []
+    budget = cfg.cpu_budget_s
     bar = tqdm(total=len(pairs), desc="matching scene pairs", disable=not progress)
-    if executor is None and cfg.workers <= 1:
+
+    def collect(part: list[PairMatch], n_pairs: int) -> None:
+        out.extend(part)
+        bar.update(n_pairs)
+        if budget is not None and sum(m.cpu_s for m in out) > budget:
+            raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s "
+                                   f"({bar.n} of {len(pairs)} scene pairs done)")
+
+    if executor is None and cfg.workers <= 1 and budget is None:
         for a in args:
-            out += _match_scene_pairs(*a)
-            bar.update(len(a[0]))
+            collect(_match_scene_pairs(*a), len(a[0]))
     else:
         own = executor is None
-        ex = make_executor("local", workers=cfg.workers) if own else executor
+        cpu0 = _children_cpu_s()
+        # a budget's own pool: the kernel also stops a worker whose one task runs past the whole budget
+        ex = (cf.ProcessPoolExecutor(max(1, cfg.workers), initializer=_limit_cpu, initargs=(budget,))
+              if own and budget is not None else make_executor("local", workers=cfg.workers) if own else executor)
         try:
             futures = {ex.submit(_match_scene_pairs, *a): len(a[0]) for a in args}
             for fut in cf.as_completed(futures):
-                out += fut.result()
-                bar.update(futures[fut])
-        finally:
+                try:
+                    part = fut.result()
+                except BrokenProcessPool:
+                    if budget is None or not own:
+                        raise
+                    ex.shutdown(wait=True)  # its workers reaped, so their CPU is counted below
+                    if _children_cpu_s() - cpu0 < budget:
+                        raise  # not the budget's doing
+                    raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s in one task "
+                                           f"(the kernel stopped its worker; {bar.n} of {len(pairs)} scene pairs "
+                                           "done)") from None
+                collect(part, futures[fut])
+        except BaseException:
             if own:
-                ex.shutdown()
+                ex.shutdown(wait=False, cancel_futures=True)
+            raise
+        if own:
+            ex.shutdown()
     bar.close()
     out.sort(key=lambda m: (m.src_scene, m.src_comp, m.tgt_scene, m.tgt_comp))
     return out
@@ -532,8 +603,10 @@ def match_stats(matches: Sequence[PairMatch]) -> dict:
         "lp_integral": status.count("lp_integral"),
         "lp_integral_rate": status.count("lp_integral") / solved if solved else 0.0,
         "milp_optimal": status.count("milp_optimal"),
-        "time_limit_hits": status.count("time_limit"),
+        "time_limit_hits": status.count("time_limit"),  # stopped at the time or the node limit
+        "milp_nodes_max": max((m.result.milp_nodes for m in matches), default=0),
         "nonempty": sum(bool(m.result.node_map) for m in matches),
         "solver_s": sum(m.result.solve_s for m in matches),
+        "cpu_s": sum(m.cpu_s for m in matches),  # CPU seconds of the tasks, in whichever processes ran them
     }
 

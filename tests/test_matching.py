@@ -7,8 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from selfseg.method.matching import (MatchConfig, SceneGraph, cosine_distance, empty_match_cost, match_all,
-                                     match_batch, match_costs, match_graphs, match_stats, prefilter)
+from selfseg.method.matching import (MatchBudgetError, MatchConfig, PairMatch, SceneGraph, cosine_distance,
+                                     empty_match_cost, match_all, match_batch, match_costs, match_graphs,
+                                     match_stats, prefilter)
 
 
 def brute_force(C: np.ndarray, e1: np.ndarray, e2: np.ndarray, cfg: MatchConfig) -> float:
@@ -143,6 +144,23 @@ def test_time_limit_is_reported_for_the_hard_block_only():
     assert r_easy.status == "milp_optimal" and r_easy.cost == pytest.approx(brute_force(*easy, MatchConfig()))
 
 
+def test_node_limit_stops_a_milp_the_same_way_on_any_machine():
+    # complete graphs, identical features: a fractional LP whose MILP needs 2 branch-and-bound nodes
+    inst = (np.full((5, 6), 0.05), np.array(list(itertools.combinations(range(5), 2))),
+            np.array(list(itertools.combinations(range(6), 2))))
+    free = match_costs(*inst, MatchConfig())
+    assert free.status == "milp_optimal" and free.milp_nodes >= 2
+    assert free.cost == pytest.approx(brute_force(*inst, MatchConfig()))
+    # the node limit, not the clock, stops it: a generous time limit changes nothing
+    stopped = [match_costs(*inst, MatchConfig(node_limit=1, time_limit_s=600.0)) for _ in range(2)]
+    assert all(r.status == "time_limit" and not r.proven_optimal for r in stopped)
+    assert stopped[0].cost == stopped[1].cost > free.cost  # a feasible match, the same one each time, not optimal
+    # HiGHS stops when its node count reaches the limit, so a solve of n nodes needs a limit of n + 1
+    enough = match_costs(*inst, MatchConfig(node_limit=free.milp_nodes + 1))
+    assert enough.status == "milp_optimal" and enough.cost == pytest.approx(free.cost)
+    assert match_stats([PairMatch(0, 0, 1, 0, 1, 0, r) for r in (free, enough)])["milp_nodes_max"] == free.milp_nodes
+
+
 def unit(rng, n, d=16):
     f = rng.normal(size=(n, d))
     return f / np.linalg.norm(f, axis=1, keepdims=True)
@@ -208,7 +226,26 @@ def test_match_all_every_component_pair_both_directions():
         for i, k in m.result.node_map.items():
             assert i in src.components[m.src_comp] and k in tgt.components[m.tgt_comp]
     stats = match_stats(serial)
-    assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0
+    assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0 and stats["cpu_s"] > 0
+    # a CPU budget it stays within changes nothing (its tasks then run in a budget-limited pool)
+    budgeted = match_all(scenes, MatchConfig(workers=1, cpu_budget_s=600.0), progress=False)
+    assert [m.result.node_map for m in budgeted] == [m.result.node_map for m in serial]
+
+
+def clique_scene(name: str, n: int) -> SceneGraph:
+    """n segments with one feature, all touching: a fractional LP and a MILP of many symmetric optima."""
+    return SceneGraph(name, np.ones((n, 4)), np.array(list(itertools.combinations(range(n), 2))), [np.arange(n)])
+
+
+def test_a_cpu_budget_stops_matching_by_cpu_seconds_not_by_the_clock():
+    # matching 9 against 12 touching segments takes about 40 CPU-s; the kernel stops its worker at 1 CPU-s
+    with pytest.raises(MatchBudgetError, match="CPU budget of 1 s"):
+        match_all([clique_scene("a", 9), clique_scene("b", 12)], MatchConfig(workers=1, cpu_budget_s=1.0),
+                  progress=False)
+    # tasks that finish are counted as they finish: six easy scene pairs, one per task, past a tiny budget
+    easy = [clique_scene(f"s{k}", 3) for k in range(4)]
+    with cf.ThreadPoolExecutor(1) as ex, pytest.raises(MatchBudgetError, match="scene pairs done"):
+        match_all(easy, MatchConfig(pairs_per_task=1, cpu_budget_s=1e-9), executor=ex, progress=False)
 
 
 def test_a_segment_no_frame_saw_is_matched_to_nothing():
