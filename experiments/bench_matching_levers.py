@@ -45,6 +45,7 @@ def run_variant(args, name: str, sets: list[str]) -> dict:
            "commit": rec["ours-matching"]["git"]["commit"],
            "table2": {r: {k: rec[r]["metrics"][k] for k in ("P", "R", "IoU")} for r in ROWS},
            "component_pairs": m["matching"]["component_pairs"], "prefiltered": m["matching"]["prefiltered"],
+           "match_stats": m["matching"],  # solve outcomes, MILP node counts, CPU seconds
            "outcomes": m["pruning"]["matches_by_outcome"],
            "within": m["gt"]["within"], "across": m["gt"]["across"],
            "cosine_same_object": cos["same_object"], "cosine_different_object": cos["different_object"],
