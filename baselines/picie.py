@@ -40,7 +40,7 @@ from selfseg.baselines.semantic_instances import (Schedule, SemanticConfig, Sema
                                                   train_loop, training_key)
 from selfseg.config import from_dict, to_dict
 from selfseg.method.network import ENCODER_BLOCKS, RGB_MEAN, RGB_STD, ResNetEncoder, _conv_bn_relu
-from selfseg.method.train import WEIGHTS, _jitter, augment, begin_training
+from selfseg.method.train import WEIGHTS, SpeedSettings, _jitter, augment, begin_training
 
 
 @dataclass
@@ -176,11 +176,14 @@ def picie_views(frames: UnlabeledFrames, idx: list[int], cfg: PicieConfig, rng: 
     return torch.stack(x1), torch.stack(x2), torch.stack(fgs), gs
 
 
-def encode_views(net: nn.Module, x1: torch.Tensor, x2: torch.Tensor, gs: list[Geometric]
+def encode_views(net: nn.Module, x1: torch.Tensor, x2: torch.Tensor, gs: list[Geometric], speed: SpeedSettings
                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """z1 = f(G(P1 x)) (x1 already transformed), z2 = G(f(P2 x))."""
-    z2 = net(x2)
-    return net(x1), torch.stack([apply_geometric(z, g) for z, g in zip(z2, gs)])
+    """z1 = f(G(P1 x)) (x1 already transformed), z2 = G(f(P2 x)); the network runs as ``speed`` says, and the
+    features come back in float32."""
+    with speed.autocast(x1.device):
+        z2 = net(speed.layout(x2)).float()  # P2's view first: batch norm's running statistics see it first
+        z1 = net(speed.layout(x1)).float()
+    return z1, torch.stack([apply_geometric(z, g) for z, g in zip(z2, gs)])
 
 
 def cluster_views(net: nn.Module, frames: UnlabeledFrames, cfg: PicieConfig, step: int, device: torch.device
@@ -195,7 +198,7 @@ def cluster_views(net: nn.Module, frames: UnlabeledFrames, cfg: PicieConfig, ste
         for start in range(0, len(frames), cfg.train.batch_size):
             x1, x2, fg, gs = picie_views(frames, list(range(start, min(start + cfg.train.batch_size, len(frames)))),
                                          cfg, rng)
-            z1, z2 = encode_views(net, x1.to(device), x2.to(device), gs)
+            z1, z2 = encode_views(net, x1.to(device), x2.to(device), gs, cfg.train)
             for b in range(len(gs)):
                 rows1.append(sample_pixels(z1[b:b + 1].cpu(), fg[b:b + 1], per_frame, gen))
                 rows2.append(sample_pixels(z2[b:b + 1].cpu(), fg[b:b + 1], per_frame, gen))
@@ -223,7 +226,7 @@ def train_picie(frames: UnlabeledFrames, cfg: PicieConfig, out_dir: Path, progre
     saved = finished(weights, key)
     if saved is None:
         device = begin_training(cfg.train)
-        net = PicieNet(cfg.net).to(device)
+        net = cfg.train.layout(PicieNet(cfg.net).to(device))
         opt = torch.optim.AdamW(net.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
         state = {"mu1": torch.zeros(cfg.n_classes, cfg.net.embed_dim, device=device),
                  "mu2": torch.zeros(cfg.n_classes, cfg.net.embed_dim, device=device)}
@@ -234,7 +237,7 @@ def train_picie(frames: UnlabeledFrames, cfg: PicieConfig, out_dir: Path, progre
             rng = np.random.default_rng([cfg.train.seed, step])
             idx = rng.choice(len(frames), cfg.train.batch_size, replace=len(frames) < cfg.train.batch_size)
             x1, x2, fg, gs = picie_views(frames, [int(i) for i in idx], cfg, rng)
-            z1, z2 = encode_views(net, x1.to(device), x2.to(device), gs)
+            z1, z2 = encode_views(net, x1.to(device), x2.to(device), gs, cfg.train)
             return picie_loss(z1, z2, fg.to(device), state["mu1"], state["mu2"], cfg.tau, cfg.within_weight,
                               cfg.cross_weight)
 

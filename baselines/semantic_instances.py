@@ -36,15 +36,15 @@ from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
-from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, TrainConfig, _latest_checkpoint,
-                                  _save_checkpoint, _save_torch, drop_checkpoints, resolve_device)
+from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, SpeedSettings, TrainConfig,
+                                  _latest_checkpoint, _save_checkpoint, _save_torch, drop_checkpoints, resolve_device)
 from selfseg.method_api import Method
 
 TRAIN_DIR = "{method}-{key_hash}"  # in the method's workdir: its training run (files: selfseg.method.train)
 
 
 @dataclass
-class Schedule(OptimSchedule):
+class Schedule(OptimSchedule, SpeedSettings):
     """Optimisation and augmentation of one training phase (sizes in pixels, H × W).
 
     Frames are first cropped to their foreground box grown by ``fg_crop_margin`` × its longer side
@@ -67,6 +67,7 @@ class Schedule(OptimSchedule):
         super().__post_init__()
         if self.image_size < 16:
             raise ValueError(f"image_size must be ≥ 16, got {self.image_size}")
+        self.check_speed()
         self.augment_config()  # validates crop, scale_range and fg_crop_margin
 
     def augment_config(self, jitter: bool = True) -> TrainConfig:

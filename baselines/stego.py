@@ -293,16 +293,19 @@ def train_dino(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progres
     if saved is None:
         d = cfg.dino
         device = begin_training(d.train)
-        student = nn.ModuleDict({"vit": ViT(cfg.vit), "head": DinoHead(cfg.vit.dim, d.out_dim)}).to(device)
+        student = nn.ModuleDict({"vit": ViT(cfg.vit), "head": DinoHead(cfg.vit.dim, d.out_dim)})
+        student = d.train.layout(student.to(device))
         teacher = copy.deepcopy(student)
         for p in teacher.parameters():
             p.requires_grad_(False)
         opt = torch.optim.AdamW(student.parameters(), lr=d.train.lr, weight_decay=d.train.weight_decay)
         state = {"center": torch.zeros(d.out_dim, device=device)}
 
-        def run(net: nn.ModuleDict, crops: torch.Tensor) -> torch.Tensor:  # V×B×3×s×s → V×B×O
+        def run(net: nn.ModuleDict, crops: torch.Tensor) -> torch.Tensor:  # V×B×3×s×s → V×B×O (float32)
             v, b = crops.shape[:2]
-            return net["head"](net["vit"](crops.flatten(0, 1).to(device))[0]).view(v, b, -1)
+            with d.train.autocast(device):
+                out = net["head"](net["vit"](d.train.layout(crops.flatten(0, 1).to(device)))[0])
+            return out.float().view(v, b, -1)
 
         def step_loss(step: int) -> torch.Tensor:
             rng = np.random.default_rng([d.train.seed, step])
@@ -367,7 +370,7 @@ def train_stego(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progre
         return StegoNet(vit, head, cfg.head).eval(), saved["centroids"]
     sched = cfg.train
     device = begin_training(sched)
-    vit = vit.to(device).eval()
+    vit = sched.layout(vit.to(device)).eval()
     for p in vit.parameters():
         p.requires_grad_(False)
     knn = nearest_frames(vit, frames, sched, cfg.knn, cfg.min_patch_fg, device)
@@ -377,10 +380,10 @@ def train_stego(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progre
 
     def views(idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         pairs = [augment(*frames[int(i)], aug, rng) for i in idx]
-        img = torch.from_numpy(np.stack([p[0] for p in pairs])).to(device)
+        img = sched.layout(torch.from_numpy(np.stack([p[0] for p in pairs])).to(device))
         fg = torch.from_numpy(np.stack([p[1] for p in pairs]) >= 0)
-        with torch.no_grad():
-            f = vit(img)[1]
+        with torch.no_grad(), sched.autocast(device):
+            f = vit(img)[1].float()
         return f, patch_foreground(fg, cfg.vit.patch_px, cfg.min_patch_fg).to(device)
 
     def step_loss(step: int) -> torch.Tensor:
@@ -389,7 +392,8 @@ def train_stego(frames: UnlabeledFrames, cfg: StegoConfig, out_dir: Path, progre
         near = knn[idx, rng.integers(0, knn.shape[1], len(idx))].numpy()
         rand = rng.integers(0, len(frames), len(idx))
         (f, m), (fk, mk), (fr, mr) = views(idx, rng), views(near, rng), views(rand, rng)
-        c, ck, cr = head(f), head(fk), head(fr)
+        with sched.autocast(device):
+            c, ck, cr = (head(x).float() for x in (f, fk, fr))
         return (cfg.weight_self * stego_corr_loss(f, f, c, c, m, m, cfg.shift_self)
                 + cfg.weight_knn * stego_corr_loss(f, fk, c, ck, m, mk, cfg.shift_knn)
                 + cfg.weight_rand * stego_corr_loss(f, fr, c, cr, m, mr, cfg.shift_rand))

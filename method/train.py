@@ -30,6 +30,7 @@ from typing import Callable, Protocol, Sequence
 import cv2
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
 from selfseg.config import from_dict, to_dict
@@ -73,7 +74,35 @@ class OptimSchedule:
 
 
 @dataclass
-class TrainConfig(OptimSchedule):
+class SpeedSettings:
+    """How a training phase's network runs (docs/benchmarks.md); a trainer that has them honours both.
+
+    ``channels_last``: the network's weights and input in NHWC memory layout (oneDNN's faster convolutions on the
+    CPU; the same sums in another order). ``precision`` "bf16": the network's forward pass under bfloat16
+    autocast (CPUs with AVX512-BF16 or AMX, and GPUs, run it about twice as fast; elsewhere it is slower); the
+    features' upsampling and normalisation and the loss stay in float32."""
+
+    channels_last: bool = False
+    precision: str = "fp32"
+
+    def check_speed(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+
+    def autocast(self, device: torch.device):
+        """The context of the network's forward pass in training (bfloat16 autocast, or nothing)."""
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
+
+    def layout(self, x: torch.Tensor | nn.Module):
+        """``x`` (a network or a B×C×H×W batch) in the memory layout the phase trains in."""
+        if not self.channels_last:
+            return x
+        return x.to(memory_format=torch.channels_last) if isinstance(x, nn.Module) else \
+            x.contiguous(memory_format=torch.channels_last)
+
+
+@dataclass
+class TrainConfig(OptimSchedule, SpeedSettings):
     """Training schedule (:class:`OptimSchedule`) and augmentation. Crop sizes in pixels (H, W), after
     resizing and scaling."""
 
@@ -110,13 +139,6 @@ class TrainConfig(OptimSchedule):
     frames_per_video: int = 1
     tau: float = 0.07
     loss_pixels: int = 50000  # the loss averages over at most this many random labelled pixels (0 = all)
-    # Speed settings (docs/benchmarks.md). channels_last: the network's weights and input in NHWC memory layout
-    # (oneDNN's faster convolutions on the CPU; the same sums in another order). precision "bf16": the network's
-    # forward pass under bfloat16 autocast (CPUs with AVX512-BF16 or AMX, and GPUs, run it about twice as fast;
-    # elsewhere it is slower); the embeddings' upsampling and normalisation and the loss stay in float32.
-    channels_last: bool = False
-    precision: str = "fp32"
-
     def __post_init__(self):
         super().__post_init__()
         if len(self.crop) != 2 or min(self.crop) < 16:
@@ -135,8 +157,7 @@ class TrainConfig(OptimSchedule):
             raise ValueError(f"fg_crop_margin must be ≥ 0, got {self.fg_crop_margin}")
         if not 0 <= self.rotation_deg <= 180:
             raise ValueError(f"rotation_deg must be in [0, 180], got {self.rotation_deg}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        self.check_speed()
 
     @property
     def crop_margin(self) -> float | None:
@@ -360,10 +381,8 @@ def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: in
               ) -> torch.Tensor:
     """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step))."""
     rgb, labels, groups = make_batch(source, cfg, step)
-    rgb = rgb.to(device)
-    if cfg.channels_last:
-        rgb = rgb.contiguous(memory_format=torch.channels_last)
-    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+    rgb = cfg.layout(rgb.to(device))
+    with cfg.autocast(device):
         emb = net(rgb)
     pixel_rng = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
     return prototype_contrastive_loss(emb, labels.to(device), cfg.tau, cfg.loss_pixels, pixel_rng,
@@ -372,8 +391,7 @@ def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: in
 
 def new_embedding_net(net_cfg: NetConfig, cfg: TrainConfig, device: torch.device) -> EmbeddingNet:
     """A freshly initialised network on ``device``, in the memory layout ``cfg`` trains it in."""
-    net = EmbeddingNet(net_cfg).to(device)
-    return net.to(memory_format=torch.channels_last) if cfg.channels_last else net
+    return cfg.layout(EmbeddingNet(net_cfg).to(device))
 
 
 def _train_key(cfg: TrainConfig, net_cfg: NetConfig) -> dict:

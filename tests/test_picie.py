@@ -163,6 +163,24 @@ def test_picie_training_is_deterministic_and_resumes_exactly(tmp_path):
         train_picie(SyntheticFrames(), tiny_picie(tau=0.5), tmp_path / "a", progress=False)
 
 
+@pytest.mark.parametrize("speed", [{"channels_last": True}, {"channels_last": True, "precision": "bf16"}])
+def test_speed_settings_train_picie_the_same_run_to_rounding_and_resume_bitwise(tmp_path, speed):
+    """As the embedding trainer's speed settings: step 0's loss equals float32's to rounding (channels_last sums
+    in another order; bf16 keeps 8 bits of mantissa), the run differs, and it resumes bitwise."""
+    train_picie(SyntheticFrames(), tiny_picie(), tmp_path / "fp32", progress=False)
+    cfg = tiny_picie(train=tiny_sched(**speed))
+    _, mu = train_picie(SyntheticFrames(), cfg, tmp_path / "fast", progress=False)
+    log, ref = (json.loads((tmp_path / d / "training_log.json").read_text())["loss"] for d in ("fast", "fp32"))
+    assert log[0] == pytest.approx(ref[0], rel=1e-2 if "precision" in speed else 1e-5) and log != ref
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train_picie(SyntheticFrames(crash_after=20), cfg, tmp_path / "resumed", progress=False)
+    _, mu_res = train_picie(SyntheticFrames(), cfg, tmp_path / "resumed", progress=False)
+    assert mu.dtype == torch.float32 and torch.equal(mu, mu_res)
+    assert json.loads((tmp_path / "resumed" / "training_log.json").read_text())["loss"] == log
+    with pytest.raises(ValueError, match="precision"):
+        tiny_sched(precision="fp16")
+
+
 @pytest.mark.parametrize("override, word", [("n_classes=0", "n_classes"), ("n_classes=-3", "n_classes"),
                                             ("train.steps=0", "steps"), ("cluster_every=0", "cluster_every"),
                                             ("train.crop=[8,8]", "crop")])

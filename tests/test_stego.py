@@ -1,13 +1,16 @@
 """Baseline F (`stego`): DINO's loss and centre, STEGO's correlation loss against slow loops,
 patch masks, the ViT, determinism and resume of both phases, and the end-to-end run on tiny."""
+import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from selfseg.baselines.stego import (DinoConfig, StegoConfig, StegoHeadConfig, ViT, ViTConfig, dino_loss,
-                                     patch_foreground, stego_corr_loss, train_dino, train_stego, update_center)
+from selfseg.baselines.stego import (DINO_DIR, DinoConfig, StegoConfig, StegoHeadConfig, ViT, ViTConfig,
+                                     dino_loss, patch_foreground, stego_corr_loss, train_dino, train_stego,
+                                     update_center)
 from selfseg.eval.cli import main as evaluate
 from test_picie import CONFIGS, SyntheticFrames, tiny, tiny_sched, tiny_scores  # noqa: F401  (tiny: fixture)
 
@@ -134,6 +137,26 @@ def test_stego_head_is_deterministic_and_segments_unit_codes(tmp_path):
     torch.testing.assert_close(codes.norm(dim=1), torch.ones(1, 21, 30))
     # A finished run is loaded without touching the frames.
     assert torch.equal(train_stego(SyntheticFrames(crash_after=0), cfg, tmp_path / "a", progress=False)[1], mu_a)
+
+
+def test_bf16_trains_dino_and_the_head_the_same_run_to_rounding_and_resumes_bitwise(tmp_path):
+    """Both phases under bf16 autocast: each phase's first loss equals float32's to rounding, the runs differ,
+    and DINO resumes bitwise."""
+    train_stego(SyntheticFrames(), tiny_stego(), tmp_path / "fp32", progress=False)
+    fast = tiny_stego(dino=dataclasses.replace(tiny_stego().dino, train=tiny_sched(precision="bf16")),
+                      train=tiny_sched(steps=4, precision="bf16"))
+    _, mu = train_stego(SyntheticFrames(), fast, tmp_path / "bf16", progress=False)
+    for phase in (DINO_DIR, "."):
+        log, ref = (json.loads((tmp_path / d / phase / "training_log.json").read_text())["loss"]
+                    for d in ("bf16", "fp32"))
+        assert log[0] == pytest.approx(ref[0], rel=2e-2) and log != ref, phase
+    assert mu.dtype == torch.float32
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train_dino(SyntheticFrames(crash_after=8), fast, tmp_path / "resumed", progress=False)
+    vit_res, _ = train_dino(SyntheticFrames(), fast, tmp_path / "resumed", progress=False)
+    vit, _ = train_dino(SyntheticFrames(crash_after=0), fast, tmp_path / "bf16" / DINO_DIR, progress=False)
+    sa, sb = vit.state_dict(), vit_res.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
 @pytest.mark.slow
