@@ -125,6 +125,10 @@ def test_config_loading(tmp_path):
         load_config(Outer, overrides=["inner.voxel=0.01"])
     with pytest.raises(ConfigError, match="expected an integer"):
         load_config(Outer, overrides=["steps=abc"])
+    # YAML 1.1 reads an exponent without a dot as a string; a number field takes it
+    assert load_config(Outer, overrides=["inner.voxel_m=1e-3"]).inner.voxel_m == 0.001
+    with pytest.raises(ConfigError, match="expected a number"):
+        load_config(Outer, overrides=["inner.voxel_m=1e-3m"])
     y = tmp_path / "c.yaml"
     y.write_text("inner:\n  mode: b\n  bogus: 1\n")
     with pytest.raises(ConfigError, match=r"c.yaml: unknown config key 'inner.bogus'"):
