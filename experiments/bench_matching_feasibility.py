@@ -14,11 +14,13 @@ every pair of the fold's training scenes, in one process (``pseudo.match.workers
 (``pseudo.match.cpu_budget_s``, counted in CPU seconds and enforced by the kernel). A candidate qualifies when
 its matching finishes within the budget with at most ``--max-limit-share`` of its solved component pairs stopped
 by a limit (status "time_limit": the node limit, or the safety net). The rows hold the matching statistics only:
-the fold's IoU is never read (V3 goes on to train φ2 and is scored by `evaluate`, but nothing here looks at it).
+`evaluate` is stopped as soon as the matching's file is written, so φ2 never trains and the fold is never scored.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -44,16 +46,22 @@ def run_candidate(args, name: str, sets: list[str]) -> dict:
            *[a for s in [*sets, *budget] for a in ("--set", s)]]
     log = Path(args.out) / f"{run}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
+    fold = Path(args.out) / WORK_DIR.format(name=run, dataset=results_key(Path(args.out), Dataset(args.data)), fold=0)
+    matches = pseudo_stage(fold) / MATCHES_JSON
     print(f"[{name}] {' '.join(cmd)}  (log {log})", flush=True)
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT)
+        # its own process group, stopped once the matching's file is written: φ2 and the score are not needed
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        while proc.poll() is None and not matches.is_file():
+            time.sleep(5)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait()
     row = {"candidate": name, "sets": sets, "node_limit": args.node_limit, "cpu_budget_s": args.cpu_budget_s,
            "safety_time_limit_s": SAFETY_TIME_LIMIT_S, "max_limit_share": args.max_limit_share,
            "wall_s": round(time.perf_counter() - t0, 1), "data": str(Path(args.data).resolve()),
            "dataset_hash": Dataset(args.data).content_hash(), "config": args.config}
-    fold = Path(args.out) / WORK_DIR.format(name=run, dataset=results_key(Path(args.out), Dataset(args.data)), fold=0)
-    matches = pseudo_stage(fold) / MATCHES_JSON
     if matches.is_file():
         stats = read_json(matches)["match_stats"]
         share = stats["time_limit_hits"] / stats["solved"] if stats["solved"] else 0.0
@@ -62,8 +70,8 @@ def run_candidate(args, name: str, sets: list[str]) -> dict:
     elif "CPU budget" in log.read_text(errors="replace"):  # MatchBudgetError's message
         row["verdict"] = f"over the CPU budget of {args.cpu_budget_s:g} s"
     else:
-        raise SystemExit(f"bench_matching_feasibility: candidate {name}: evaluate exited with {rc} before matching "
-                         f"finished, and not for the budget (see {log})")
+        raise SystemExit(f"bench_matching_feasibility: candidate {name}: evaluate exited with {proc.returncode} "
+                         f"before matching finished, and not for the budget (see {log})")
     print(f"[{name}] {row['verdict']}" + (f": {stats['time_limit_hits']} of {stats['solved']} solved pairs stopped "
                                          f"by a limit, {stats['cpu_s']:.0f} CPU-s, largest MILP "
                                          f"{stats['milp_nodes_max']} nodes" if "match_stats" in row else ""),
