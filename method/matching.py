@@ -38,7 +38,9 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import math
+import multiprocessing
 import resource
+import signal
 import time
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -510,10 +512,21 @@ def _match_scene_pairs(pairs: Sequence[tuple[int, int]], graphs: dict[int, Scene
     return out
 
 
-def _children_cpu_s() -> float:
-    """User + system CPU seconds of this process's reaped children."""
-    u = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return u.ru_utime + u.ru_stime
+class _RecordingContext:
+    """A multiprocessing context that keeps every process it makes, so their exit codes can be read after a
+    ProcessPoolExecutor breaks."""
+
+    def __init__(self) -> None:
+        self._base = multiprocessing.get_context()
+        self.processes: list = []
+
+    def __getattr__(self, name: str):
+        return getattr(self._base, name)
+
+    def Process(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
+        p = self._base.Process(*args, **kwargs)
+        self.processes.append(p)
+        return p
 
 
 def _limit_cpu(seconds: float) -> None:
@@ -560,9 +573,9 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
             collect(_match_scene_pairs(*a), len(a[0]))
     else:
         own = executor is None
-        cpu0 = _children_cpu_s()
         # a budget's own pool: the kernel also stops a worker whose one task runs past the whole budget
-        ex = (cf.ProcessPoolExecutor(max(1, cfg.workers), initializer=_limit_cpu, initargs=(budget,))
+        ctx = _RecordingContext()
+        ex = (cf.ProcessPoolExecutor(max(1, cfg.workers), ctx, initializer=_limit_cpu, initargs=(budget,))
               if own and budget is not None else make_executor("local", workers=cfg.workers) if own else executor)
         try:
             futures = {ex.submit(_match_scene_pairs, *a): len(a[0]) for a in args}
@@ -572,9 +585,10 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
                 except BrokenProcessPool:
                     if budget is None or not own:
                         raise
-                    ex.shutdown(wait=True)  # its workers reaped, so their CPU is counted below
-                    if _children_cpu_s() - cpu0 < budget:
-                        raise  # not the budget's doing
+                    ex.shutdown(wait=True)  # its workers joined, so their exit codes are known
+                    codes = sorted({p.exitcode for p in ctx.processes if p.exitcode})
+                    if -signal.SIGXCPU not in codes:  # not the budget's doing: say how the workers ended
+                        raise BrokenProcessPool(f"a matching worker ended abruptly (exit codes {codes})") from None
                     raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s in one task "
                                            f"(the kernel stopped its worker; {bar.n} of {len(pairs)} scene pairs "
                                            "done)") from None

@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import itertools
+import os
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
 
+from selfseg.method import matching
 from selfseg.method.matching import (MatchBudgetError, MatchConfig, PairMatch, SceneGraph, cosine_distance,
                                      empty_match_cost, match_all, match_batch, match_costs, match_graphs,
                                      match_stats, prefilter)
@@ -246,6 +249,18 @@ def test_a_cpu_budget_stops_matching_by_cpu_seconds_not_by_the_clock():
     easy = [clique_scene(f"s{k}", 3) for k in range(4)]
     with cf.ThreadPoolExecutor(1) as ex, pytest.raises(MatchBudgetError, match="scene pairs done"):
         match_all(easy, MatchConfig(pairs_per_task=1, cpu_budget_s=1e-9), executor=ex, progress=False)
+
+
+def _worker_dies(*args):
+    os._exit(3)
+
+
+def test_a_worker_that_dies_for_another_reason_is_not_called_over_budget(monkeypatch):
+    # the budget's error needs the kernel's CPU signal (SIGXCPU) as the worker's end; any other end is named
+    monkeypatch.setattr(matching, "_match_scene_pairs", _worker_dies)
+    with pytest.raises(BrokenProcessPool, match=r"exit codes \[3\]"):
+        match_all([clique_scene("a", 3), clique_scene("b", 3)], MatchConfig(workers=1, cpu_budget_s=60.0),
+                  progress=False)
 
 
 def test_a_segment_no_frame_saw_is_matched_to_nothing():
