@@ -1,7 +1,8 @@
 """Inference speed (network + clustering, time split) and training throughput, on the CPU or a GPU.
 
     .venv/bin/python bench/bench_inference.py [--device cpu|cuda|auto] [--threads 2] [--repeats 5] [--batch 16]
-        [--train-steps 3] [--parts inference,training] [--before PATH] [--out bench/results/inference.json]
+        [--train-steps 3] [--parts inference,training] [--method-config NAME=YAML ...] [--before PATH]
+        [--out bench/results/inference.json]
 
 For each network preset and resolution it times the embedding network on a synthetic tabletop
 frame (8 flat-coloured objects, ~35 % foreground) as the methods run it (resized to the training
@@ -21,7 +22,11 @@ augmentation of the default TrainConfig) on the device, also as minutes per 800 
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
 speed-up over float32 (fastest and median step). On CUDA the network and the mode finding run as CUDA graphs
 (``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``).
-``--parts training`` times training alone. Paper figure: about 6 fps. ``--before``: an earlier run's JSON, kept under
+``--parts training`` times training alone. ``--method-config NAME=YAML`` (repeatable) times, instead of the two
+presets, the network as that embedding method's config runs it: its ``net``, its ``train`` settings (scale, foreground
+crop, masked background, and the training variants on top of its own), and ``test_flip``; a foreground crop gives
+each frame its own input shape, so that network runs without CUDA graphs, as the method does. Paper figure: about 6
+fps. ``--before``: an earlier run's JSON, kept under
 "before" for before/after comparisons.
 """
 from __future__ import annotations
@@ -37,14 +42,16 @@ import torch
 
 from common import bench_parser, write_result
 
-from selfseg.config import to_dict
+from selfseg.config import load_config, to_dict
 from selfseg.eval.provenance import cpu_model
 from selfseg.fileio import read_json
 from selfseg.method import cuda_graphs
-from selfseg.method.features import embed_frames
+from selfseg.method.embed_method import EmbeddingMethodConfig
+from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import TrainConfig, new_embedding_net, resolve_device, step_loss
+from selfseg.registry import get_method_class
 
 SIZES = ((320, 240), (640, 480))
 # Training speed settings timed side by side (TrainConfig.channels_last, .precision); "fp32" is the default.
@@ -96,12 +103,14 @@ def best_time(fn, repeats: int, device: torch.device) -> tuple[float, float]:
     return float(np.min(wall)), float(np.min(cpu))
 
 
-def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size: int, repeats: int, batch: int,
-                    device: torch.device) -> dict:
-    """Per resolution: the method's pipeline (network at the training scale ``image_size``, embeddings
-    resized to the frame, clustering at full resolution), its parts, and the network at native size."""
+def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg: TrainConfig, repeats: int,
+                    batch: int, device: torch.device, flip: bool = False) -> dict:
+    """Per resolution: the method's pipeline (network at the training scale ``train_cfg.image_size``, on the
+    foreground box and with the background masked where ``train_cfg`` says so, mirrored too with ``flip``;
+    embeddings resized to the frame, clustering at full resolution), its parts, and the network at native size."""
     torch.manual_seed(0)
     net = EmbeddingNet(net_cfg).to(device).eval()
+    image_size, margin = train_cfg.image_size, train_cfg.crop_margin
     out = {}
     for w, h in SIZES:
         frames = [synthetic_frame(w, h, seed=i) for i in range(batch)]
@@ -110,9 +119,14 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
         masks = [f[1] > 0 for f in frames]
         emb, fg = embs[0], masks[0]
         emb_dev, embs_dev = torch.from_numpy(emb).to(device), torch.from_numpy(np.stack(embs)).to(device)
-        t_net, c_net = best_time(lambda: embed_frames(net, [rgb], device, image_size), repeats, device)
-        t_native, _ = best_time(lambda: embed_frames(net, [rgb], device), repeats, device)
-        t_batch, _ = best_time(lambda: embed_frames(net, [f[0] for f in frames], device, image_size), repeats, device)
+
+        def network(rgbs, fgs, size=image_size):  # the network as the method runs it on these frames
+            boxes = None if margin is None else [foreground_box(m, margin) for m in fgs]
+            return embed_frames(net, rgbs, device, size, boxes, fgs if train_cfg.mask_background else None, flip)
+
+        t_net, c_net = best_time(lambda: network([rgb], [fg]), repeats, device)
+        t_native, _ = best_time(lambda: network([rgb], [fg], 0), repeats, device)
+        t_batch, _ = best_time(lambda: network([f[0] for f in frames], masks), repeats, device)
         t_numpy, c_numpy = best_time(lambda: cluster_frame(emb, fg, cluster_cfg), repeats, device)
         t_torch, _ = best_time(lambda: cluster_frame(emb_dev, fg, cluster_cfg), repeats, device)
         t_torch_batch, _ = best_time(lambda: cluster_frames(embs_dev, masks, cluster_cfg), repeats, device)
@@ -120,7 +134,7 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
                                                          cluster_cfg.min_component_px), repeats, device)
         if device.type == "cuda":  # the same without CUDA graphs: kernels launched one by one from Python
             cuda_graphs.ENABLED = False
-            t_net_eager, _ = best_time(lambda: embed_frames(net, [rgb], device, image_size), repeats, device)
+            t_net_eager, _ = best_time(lambda: network([rgb], [fg]), repeats, device)
             t_torch_eager, _ = best_time(lambda: cluster_frame(emb_dev, fg, cluster_cfg), repeats, device)
             cuda_graphs.ENABLED = True
         pred, pred_torch = cluster_frame(emb, fg, cluster_cfg), cluster_frame(emb_dev, fg, cluster_cfg)
@@ -128,7 +142,7 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
         # One call as a method runs a frame: the network, then the clustering of (here, the synthetic) embeddings on
         # the same device and stream, so what the host does while the device runs counts once.
         emb_used = emb if device.type == "cpu" else emb_dev
-        t_pipeline, _ = best_time(lambda: (embed_frames(net, [rgb], device, image_size),
+        t_pipeline, _ = best_time(lambda: (network([rgb], [fg]),
                                            cluster_frame(emb_used, fg, cluster_cfg)), repeats, device)
         row = {"network_s": t_net, "clustering_s": t_cluster, "total_s": t_net + t_cluster,
                "fps": 1 / (t_net + t_cluster),
@@ -146,7 +160,8 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, image_size
             "fg_pixels": int(fg.sum()), "objects": int(inst.max()),
             "instances_found": int(len(np.unique(pred[pred > 0]))),
             "torch_labels_equal_numpy": bool(np.array_equal(pred, pred_torch))}
-        print(f"  {w}x{h}: network {t_net * 1000:.1f} ms (at {image_size} px; {t_native * 1000:.0f} ms at native size; "
+        print(f"  {w}x{h}: network {t_net * 1000:.1f} ms (at {image_size} px{', flipped too' if flip else ''}; "
+              f"{t_native * 1000:.0f} ms at native size; "
               f"{t_batch / batch * 1000:.1f} ms/frame in batches of {batch}) + clustering numpy {t_numpy * 1000:.1f} / "
               f"torch {t_torch * 1000:.1f} ms (batched {t_torch_batch / batch * 1000:.1f} ms/frame; components "
               f"{t_components * 1000:.1f} ms) = {1 / (t_net + t_cluster):.2f} fps, {1 / t_pipeline:.2f} fps in one "
@@ -198,6 +213,21 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     return out
 
 
+def method_networks(specs: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool]]:
+    """{NAME: (net, training settings, test-time flip)} of each ``NAME=YAML``: the registered embedding method NAME
+    under the config file YAML (its φ2 network; ValueError for a method without one)."""
+    out = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep:
+            raise ValueError(f"expected NAME=YAML, got {spec!r}")
+        cfg = load_config(get_method_class(name).config_cls, path)
+        if not isinstance(cfg, EmbeddingMethodConfig):
+            raise ValueError(f"{name} is not an embedding method")
+        out[f"{name}:{Path(path).name}"] = (cfg.net, cfg.train, cfg.test_flip)
+    return out
+
+
 def device_name(device: torch.device) -> str:
     """The GPU's name, or the CPU model."""
     return torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model()
@@ -212,8 +242,15 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
     ap.add_argument("--parts", default="inference,training", help="what to time: inference, training or both")
+    ap.add_argument("--method-config", action="append", default=[], metavar="NAME=YAML",
+                    help="time the network as embedding method NAME runs it under config YAML, instead of the presets")
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
     args = ap.parse_args()
+    try:
+        nets = method_networks(args.method_config) if args.method_config else \
+            {name: (NetConfig.preset(name), TrainConfig(), False) for name in ("default", "fast")}
+    except (ValueError, KeyError, OSError) as e:
+        ap.error(f"--method-config: {e}")
     args.parts = set(args.parts.split(","))
     if not args.parts or not args.parts <= {"inference", "training"}:
         ap.error(f"--parts: inference, training or both, got {','.join(sorted(args.parts))}")
@@ -227,19 +264,20 @@ def main() -> None:
                "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS") if k in os.environ},
                "repeats": args.repeats, "batch": args.batch,
                "cluster_config": to_dict(cluster_cfg), "train_config": to_dict(train_cfg), "nets": {}}
-    for name in ("default", "fast"):
-        net_cfg = NetConfig.preset(name)
+    for name, (net_cfg, net_train_cfg, flip) in nets.items():
         print(f"net {name}: {to_dict(net_cfg)}", flush=True)
         entry = {"net_config": to_dict(net_cfg)}
+        if args.method_config:
+            entry |= {"train_config": to_dict(net_train_cfg), "test_flip": flip}
         if "inference" in args.parts:
-            entry["inference"] = bench_inference(net_cfg, cluster_cfg, train_cfg.image_size, args.repeats, args.batch,
-                                                 device)
+            entry["inference"] = bench_inference(net_cfg, cluster_cfg, net_train_cfg, args.repeats, args.batch,
+                                                 device, flip)
         if "training" in args.parts:
-            entry["training"] = bench_training(net_cfg, train_cfg, args.train_steps, device)
+            entry["training"] = bench_training(net_cfg, net_train_cfg, args.train_steps, device)
             for variant, t in entry["training"].items():
                 print(f"  training ({variant}): {t['images_per_s']} images/s, {t['minutes_per_800_steps']} min per "
                       f"800 steps, ×{t['speedup_vs_fp32']} (median ×{t['median_speedup_vs_fp32']}; batch "
-                      f"{train_cfg.batch_size}, crop {train_cfg.crop})", flush=True)
+                      f"{net_train_cfg.batch_size}, crop {net_train_cfg.crop})", flush=True)
         results["nets"][name] = entry
     if args.before is not None:
         results["before"] = read_json(args.before)

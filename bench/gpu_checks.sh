@@ -10,12 +10,15 @@
 # test scenes need open3d; where it is missing, make them here first and carry them:
 #   .venv/bin/python -c "from selfseg.analytic import *; make_dataset(__import__('pathlib').Path('DIR'), two_box_scenes())"
 # and run with SELFSEG_ANALYTIC_DATASET=DIR.
+# METHOD_CONFIGS="NAME=YAML ...": time the network as each of those embedding methods' configs runs it
+# (bench_inference.py --method-config) instead of the two network presets.
 # Writes OUT_DIR/tests.log, OUT_DIR/inference_cuda.json, OUT_DIR/training_cuda.json (PARTS without "training": not
 # timed) and OUT_DIR/bench.log.
 set -uo pipefail
 out=${1:?usage: bench/gpu_checks.sh OUT_DIR [WHEEL_DIR]}
 wheels=${2:-}
 py=${PYTHON:-python3}
+nets=(); for spec in ${METHOD_CONFIGS:-}; do nets+=(--method-config "$spec"); done
 mkdir -p "$out"
 pkg=$(mktemp -d)
 mkdir "$pkg/selfseg"
@@ -36,11 +39,11 @@ nvidia-smi -L
 tests_rc=$?
 # Inference on one CPU thread (host work of a frame is small; on 16 threads OpenCV's and torch's thread pools cost
 # more than they save), training on 16 (its augmentation runs on the CPU).
-"$py" bench/bench_inference.py --device cuda --threads 1 --repeats 20 --batch 64 --parts inference \
+"$py" bench/bench_inference.py --device cuda --threads 1 --repeats 20 --batch 64 --parts inference "${nets[@]}" \
     --out "$out/inference_cuda.json" 2>&1 | tee "$out/bench.log"
 bench_rc=$?
 if [[ ${PARTS:-inference,training} == *training* ]]; then
-    "$py" bench/bench_inference.py --device cuda --threads 16 --train-steps 20 --parts training \
+    "$py" bench/bench_inference.py --device cuda --threads 16 --train-steps 20 --parts training "${nets[@]}" \
         --out "$out/training_cuda.json" 2>&1 | tee -a "$out/bench.log"
     bench_rc=$((bench_rc || $?))
 fi
