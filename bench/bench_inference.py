@@ -1,7 +1,7 @@
 """Inference speed (network + clustering, time split) and training throughput, on the CPU or a GPU.
 
     .venv/bin/python bench/bench_inference.py [--device cpu|cuda|auto] [--threads 2] [--repeats 5] [--batch 16]
-        [--train-steps 3] [--parts inference,training] [--method-config NAME=YAML ...] [--before PATH]
+        [--train-steps 3] [--parts inference,training] [--method-config YAML ...] [--before PATH]
         [--out bench/results/inference.json]
 
 For each network preset and resolution it times the embedding network on a synthetic tabletop
@@ -22,8 +22,8 @@ augmentation of the default TrainConfig) on the device, also as minutes per 800 
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
 speed-up over float32 (fastest and median step). On CUDA the network and the mode finding run as CUDA graphs
 (``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``).
-``--parts training`` times training alone. ``--method-config NAME=YAML`` (repeatable) times, instead of the two
-presets, the network as that embedding method's config runs it: its ``net``, its ``train`` settings (scale, foreground
+``--parts training`` times training alone. ``--method-config YAML`` (repeatable) times, instead of the two
+presets, the network as that embedding-method config file runs it: its ``net``, its ``train`` settings (scale, foreground
 crop, masked background, and the training variants on top of its own), and ``test_flip``; a foreground crop gives
 each frame its own input shape, so that network runs without CUDA graphs, as the method does. Paper figure: about 6
 fps. ``--before``: an earlier run's JSON, kept under
@@ -33,12 +33,13 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
+import yaml
 
 from common import bench_parser, write_result
 
@@ -51,7 +52,6 @@ from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import TrainConfig, new_embedding_net, resolve_device, step_loss
-from selfseg.registry import get_method_class
 
 SIZES = ((320, 240), (640, 480))
 # Training speed settings timed side by side (TrainConfig.channels_last, .precision); "fp32" is the default.
@@ -213,18 +213,19 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     return out
 
 
-def method_networks(specs: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool]]:
-    """{NAME: (net, training settings, test-time flip)} of each ``NAME=YAML``: the registered embedding method NAME
-    under the config file YAML (its φ2 network; ValueError for a method without one)."""
+def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool]]:
+    """{file name: (net, training settings, test-time flip)} of the φ2 network each method config file sets: its
+    ``net``, ``train`` and ``test_flip`` over :class:`EmbeddingMethodConfig`'s defaults (every embedding method's;
+    the file's other sections are the method's own, so no method class, and none of its imports, is needed)."""
     out = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep:
-            raise ValueError(f"expected NAME=YAML, got {spec!r}")
-        cfg = load_config(get_method_class(name).config_cls, path)
-        if not isinstance(cfg, EmbeddingMethodConfig):
-            raise ValueError(f"{name} is not an embedding method")
-        out[f"{name}:{Path(path).name}"] = (cfg.net, cfg.train, cfg.test_flip)
+    for path in paths:
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        keys = {f.name for f in fields(EmbeddingMethodConfig)}
+        try:
+            cfg = load_config(EmbeddingMethodConfig, base={k: v for k, v in data.items() if k in keys})
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
+        out[Path(path).name] = (cfg.net, cfg.train, cfg.test_flip)
     return out
 
 
@@ -242,14 +243,14 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
     ap.add_argument("--parts", default="inference,training", help="what to time: inference, training or both")
-    ap.add_argument("--method-config", action="append", default=[], metavar="NAME=YAML",
-                    help="time the network as embedding method NAME runs it under config YAML, instead of the presets")
+    ap.add_argument("--method-config", action="append", default=[], metavar="YAML",
+                    help="time the network as an embedding method's config file sets it, instead of the presets")
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
     args = ap.parse_args()
     try:
         nets = method_networks(args.method_config) if args.method_config else \
             {name: (NetConfig.preset(name), TrainConfig(), False) for name in ("default", "fast")}
-    except (ValueError, KeyError, OSError) as e:
+    except (ValueError, OSError, yaml.YAMLError) as e:
         ap.error(f"--method-config: {e}")
     args.parts = set(args.parts.split(","))
     if not args.parts or not args.parts <= {"inference", "training"}:

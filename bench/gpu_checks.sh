@@ -10,7 +10,7 @@
 # test scenes need open3d; where it is missing, make them here first and carry them:
 #   .venv/bin/python -c "from selfseg.analytic import *; make_dataset(__import__('pathlib').Path('DIR'), two_box_scenes())"
 # and run with SELFSEG_ANALYTIC_DATASET=DIR.
-# METHOD_CONFIGS="NAME=YAML ...": time the network as each of those embedding methods' configs runs it
+# METHOD_CONFIGS="YAML ...": time the network as each of those embedding-method config files runs it
 # (bench_inference.py --method-config) instead of the two network presets.
 # Writes OUT_DIR/tests.log, OUT_DIR/inference_cuda.json, OUT_DIR/training_cuda.json (PARTS without "training": not
 # timed) and OUT_DIR/bench.log.
