@@ -217,10 +217,10 @@ def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig,
     """{file name: (net, training settings, test-time flip)} of the φ2 network each method config file sets: its
     ``net``, ``train`` and ``test_flip`` over :class:`EmbeddingMethodConfig`'s defaults (every embedding method's;
     the file's other sections are the method's own, so no method class, and none of its imports, is needed)."""
+    keys = {f.name for f in fields(EmbeddingMethodConfig)}
     out = {}
     for path in paths:
         data = yaml.safe_load(Path(path).read_text()) or {}
-        keys = {f.name for f in fields(EmbeddingMethodConfig)}
         try:
             cfg = load_config(EmbeddingMethodConfig, base={k: v for k, v in data.items() if k in keys})
         except ValueError as e:

@@ -574,16 +574,16 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
     else:
         own = executor is None
         # a budget's own pool: the kernel also stops a worker whose one task runs past the whole budget
-        ctx = _RecordingContext()
+        ctx = _RecordingContext() if own and budget is not None else None
         ex = (cf.ProcessPoolExecutor(max(1, cfg.workers), ctx, initializer=_limit_cpu, initargs=(budget,))
-              if own and budget is not None else make_executor("local", workers=cfg.workers) if own else executor)
+              if ctx is not None else make_executor("local", workers=cfg.workers) if own else executor)
         try:
             futures = {ex.submit(_match_scene_pairs, *a): len(a[0]) for a in args}
             for fut in cf.as_completed(futures):
                 try:
                     part = fut.result()
                 except BrokenProcessPool:
-                    if budget is None or not own:
+                    if ctx is None:  # not the budget's own pool
                         raise
                     ex.shutdown(wait=True)  # its workers joined, so their exit codes are known
                     codes = sorted({p.exitcode for p in ctx.processes if p.exitcode})
