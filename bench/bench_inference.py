@@ -24,8 +24,9 @@ speed-up over float32 (fastest and median step). On CUDA the network and the mod
 (``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``).
 ``--parts training`` times training alone. ``--method-config YAML`` (repeatable) times, instead of the two
 presets, the network as that embedding-method config file runs it: its ``net``, its ``train`` settings (scale, foreground
-crop, masked background, and the training variants on top of its own), and ``test_flip``; a foreground crop gives
-each frame its own input shape, so that network runs without CUDA graphs, as the method does. Paper figure: about 6
+crop, masked background, and the training variants on top of its own), ``test_flip`` and ``test_square_crop``; a
+foreground crop gives each frame its own input shape, so that network runs without CUDA graphs, as the method does,
+unless the crops are square (one shape: a graph, frames batched). Paper figure: about 6
 fps. ``--before``: an earlier run's JSON, kept under
 "before" for before/after comparisons.
 """
@@ -104,9 +105,10 @@ def best_time(fn, repeats: int, device: torch.device) -> tuple[float, float]:
 
 
 def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg: TrainConfig, repeats: int,
-                    batch: int, device: torch.device, flip: bool = False) -> dict:
+                    batch: int, device: torch.device, flip: bool = False, square: bool = False) -> dict:
     """Per resolution: the method's pipeline (network at the training scale ``train_cfg.image_size``, on the
-    foreground box and with the background masked where ``train_cfg`` says so, mirrored too with ``flip``;
+    foreground box (grown to a square with ``square``) and with the background masked where ``train_cfg`` says so,
+    mirrored too with ``flip``;
     embeddings resized to the frame, clustering at full resolution), its parts, and the network at native size."""
     torch.manual_seed(0)
     net = EmbeddingNet(net_cfg).to(device).eval()
@@ -122,7 +124,8 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg:
 
         def network(rgbs, fgs, size=image_size):  # the network as the method runs it on these frames
             boxes = None if margin is None else [foreground_box(m, margin) for m in fgs]
-            return embed_frames(net, rgbs, device, size, boxes, fgs if train_cfg.mask_background else None, flip)
+            return embed_frames(net, rgbs, device, size, boxes, fgs if train_cfg.mask_background else None, flip,
+                                square and size > 0)
 
         t_net, c_net = best_time(lambda: network([rgb], [fg]), repeats, device)
         t_native, _ = best_time(lambda: network([rgb], [fg], 0), repeats, device)
@@ -213,10 +216,11 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     return out
 
 
-def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool]]:
-    """{file name: (net, training settings, test-time flip)} of the φ2 network each method config file sets: its
-    ``net``, ``train`` and ``test_flip`` over :class:`EmbeddingMethodConfig`'s defaults (every embedding method's;
-    the file's other sections are the method's own, so no method class, and none of its imports, is needed)."""
+def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool, bool]]:
+    """{file name: (net, training settings, test-time flip, square crops)} of the φ2 network each method config file
+    sets: its ``net``, ``train``, ``test_flip`` and ``test_square_crop`` over :class:`EmbeddingMethodConfig`'s
+    defaults (every embedding method's; the file's other sections are the method's own, so no method class, and
+    none of its imports, is needed)."""
     keys = {f.name for f in fields(EmbeddingMethodConfig)}
     out = {}
     for path in paths:
@@ -225,7 +229,7 @@ def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig,
             cfg = load_config(EmbeddingMethodConfig, base={k: v for k, v in data.items() if k in keys})
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
-        out[Path(path).name] = (cfg.net, cfg.train, cfg.test_flip)
+        out[Path(path).name] = (cfg.net, cfg.train, cfg.test_flip, cfg.test_square_crop)
     return out
 
 
@@ -249,7 +253,7 @@ def main() -> None:
     args = ap.parse_args()
     try:
         nets = method_networks(args.method_config) if args.method_config else \
-            {name: (NetConfig.preset(name), TrainConfig(), False) for name in ("default", "fast")}
+            {name: (NetConfig.preset(name), TrainConfig(), False, False) for name in ("default", "fast")}
     except (ValueError, OSError, yaml.YAMLError) as e:
         ap.error(f"--method-config: {e}")
     args.parts = set(args.parts.split(","))
@@ -265,14 +269,14 @@ def main() -> None:
                "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS") if k in os.environ},
                "repeats": args.repeats, "batch": args.batch,
                "cluster_config": to_dict(cluster_cfg), "train_config": to_dict(train_cfg), "nets": {}}
-    for name, (net_cfg, net_train_cfg, flip) in nets.items():
+    for name, (net_cfg, net_train_cfg, flip, square) in nets.items():
         print(f"net {name}: {to_dict(net_cfg)}", flush=True)
         entry = {"net_config": to_dict(net_cfg)}
         if args.method_config:
-            entry |= {"train_config": to_dict(net_train_cfg), "test_flip": flip}
+            entry |= {"train_config": to_dict(net_train_cfg), "test_flip": flip, "test_square_crop": square}
         if "inference" in args.parts:
             entry["inference"] = bench_inference(net_cfg, cluster_cfg, net_train_cfg, args.repeats, args.batch,
-                                                 device, flip)
+                                                 device, flip, square)
         if "training" in args.parts:
             entry["training"] = bench_training(net_cfg, net_train_cfg, args.train_steps, device)
             for variant, t in entry["training"].items():

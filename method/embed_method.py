@@ -41,10 +41,16 @@ class EmbeddingMethodConfig:
     frame_stride: int = 5  # training uses every n-th frame of each training video
     device: str = "auto"  # inference device ("auto" → cuda if available, else cpu)
     test_flip: bool = False  # inference: each frame's embeddings averaged with its mirror image's (features.forward)
+    # inference with train.fg_crop and mask_background: each foreground box grown to a square (masked background
+    # beyond it, same scale), so every frame is one input shape: frames batched, a CUDA graph on a GPU
+    test_square_crop: bool = False
 
     def __post_init__(self):
         if self.frame_stride < 1:
             raise ValueError(f"frame_stride must be ≥ 1, got {self.frame_stride}")
+        if self.test_square_crop and not (self.train.fg_crop and self.train.mask_background):
+            raise ValueError("test_square_crop needs train.fg_crop and train.mask_background (the square's padding "
+                             "is masked background)")
 
 
 def video_key(video: Video) -> list:
@@ -104,7 +110,7 @@ class EmbeddingMethodBase(Method):
             [foreground_box(m, train.crop_margin) for m in fg_masks]
         masks = fg_masks if train.mask_background else None
         return embed_frames(self._net, rgbs, self._device, train.image_size, boxes, masks,
-                            self.config.test_flip).float()
+                            self.config.test_flip, self.config.test_square_crop).float()
 
     def network_train_config(self) -> TrainConfig:
         """The training settings of the network that segments (its scale and foreground crop)."""

@@ -29,9 +29,16 @@ def mask_input(x: torch.Tensor, fg_masks: list[np.ndarray] | None) -> torch.Tens
     """B×3×h×w network input in [0, 1] with every pixel outside the foreground set to RGB_MEAN (what
     ``TrainConfig.mask_background`` trains on); ``fg_masks``: B bool H×W masks, resized to h×w by nearest
     neighbour (as augment resizes them) if the input was resized. None: ``x`` unchanged."""
-    if fg_masks is None:
-        return x
-    m = torch.from_numpy(np.stack([np.asarray(f, bool) for f in fg_masks])).to(x.device)[:, None].float()
+    return x if fg_masks is None else _masked(x, _mask_tensor(fg_masks, x.device))
+
+
+def _mask_tensor(fg_masks: list[np.ndarray], device: str | torch.device) -> torch.Tensor:
+    """B bool H×W masks → B×1×H×W float tensor (1 = foreground) on ``device``."""
+    return torch.from_numpy(np.stack([np.asarray(f, bool) for f in fg_masks])).to(device)[:, None].float()
+
+
+def _masked(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """:func:`mask_input` with the masks as a B×1×H×W float tensor."""
     if m.shape[2:] != x.shape[2:]:
         m = F.interpolate(m, size=x.shape[2:], mode="nearest")
     mean = torch.tensor(RGB_MEAN, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
@@ -62,7 +69,7 @@ def graphed_forward(net: EmbeddingNet, flip: bool = False) -> GraphedFunction:
 @torch.inference_mode()
 def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int = 0,
                  boxes: list[tuple[int, int, int, int] | None] | None = None,
-                 fg_masks: list[np.ndarray] | None = None, flip: bool = False) -> torch.Tensor:
+                 fg_masks: list[np.ndarray] | None = None, flip: bool = False, square: bool = False) -> torch.Tensor:
     """uint8 H×W×3 frames (same size) → B×D×H×W unit embeddings on ``device``.
 
     ``image_size`` > 0: the frames are resized so their longer side is ``image_size`` (the scale the
@@ -73,9 +80,15 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     ``fg_masks`` (``TrainConfig.mask_background``): bool H×W per frame; the network sees RGB_MEAN
     outside it (:func:`mask_input`, before and after resizing, as augment does).
     ``flip``: each embedding is averaged with that of the mirrored frame (:func:`forward`).
-    Without boxes (one input shape per video) an evaluation-mode net runs as a CUDA graph on a GPU
-    (:func:`graphed_forward`); crops differ in shape from frame to frame, so they run without graphs.
+    ``square`` (with ``boxes``, ``fg_masks`` and ``image_size`` > 0): each box is grown about its centre to a
+    square of its longer side, the part beyond the frame filled with masked background, so the scale is the
+    box's as without ``square`` and every crop is one image_size × image_size input: the frames run in one batch.
+    Without boxes, or with square ones (one input shape), an evaluation-mode net runs as a CUDA graph on a GPU
+    (:func:`graphed_forward`); plain crops differ in shape from frame to frame, so they run without graphs.
     """
+    run = graphed_forward(net, flip) if not net.training else (lambda x: forward(net, x, flip))
+    if boxes is not None and square:
+        return _embed_square(net, rgbs, device, image_size, boxes, fg_masks, run)
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
         out = torch.zeros(len(rgbs), net.cfg.embed_dim, h, w, device=device)
@@ -85,22 +98,68 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
             out[i, :, y0:y1, x0:x1] = _embed(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device, image_size, fg,
                                              lambda x: forward(net, x, flip))[0]
         return out
-    run = graphed_forward(net, flip) if not net.training else (lambda x: forward(net, x, flip))
     return _embed(net, rgbs, device, image_size, fg_masks, run)
+
+
+def _frames_tensor(rgbs: list[np.ndarray], device: str | torch.device) -> torch.Tensor:
+    """Same-size uint8 H×W×3 frames → B×3×H×W float tensor in [0, 1] on ``device``."""
+    return torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def _network_input(x: torch.Tensor, m: torch.Tensor | None, image_size: int) -> torch.Tensor:
+    """B×3×h×w frames in [0, 1] → the network's input: background masked where ``m`` (B×1×h×w, 1 = foreground)
+    is 0, resized so the longer side is ``image_size`` (≤ 0: not resized), then masked again at that size (as
+    augment does). ``m`` None: nothing masked."""
+    x = x if m is None else _masked(x, m)
+    h, w = x.shape[2:]
+    if image_size <= 0 or max(h, w) == image_size:
+        return x
+    s = image_size / max(h, w)
+    small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
+                          align_corners=False, antialias=s < 1)
+    return small if m is None else _masked(small, m)
+
+
+def _resized_embedding(emb: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """B×D×h'×w' network output → B×D×h×w unit embeddings (bilinear, renormalised; as is when h×w already)."""
+    if emb.shape[2:] == (h, w):
+        return emb
+    return F.normalize(F.interpolate(emb, size=(h, w), mode="bilinear", align_corners=False), dim=1)
 
 
 def _embed(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int,
            fg_masks: list[np.ndarray] | None, run) -> torch.Tensor:
     """:func:`embed_frames` of whole frames, the network called as ``run(x)``."""
-    x = mask_input(torch.from_numpy(np.stack(rgbs)).to(device).permute(0, 3, 1, 2).float().div_(255.0), fg_masks)
-    h, w = x.shape[2:]
-    if image_size <= 0 or max(h, w) == image_size:
-        return run(x)
-    s = image_size / max(h, w)
-    small = F.interpolate(x, size=(max(1, round(h * s)), max(1, round(w * s))), mode="bilinear",
-                          align_corners=False, antialias=s < 1)
-    return F.normalize(F.interpolate(run(mask_input(small, fg_masks)), size=(h, w), mode="bilinear",
-                                     align_corners=False), dim=1)
+    h, w = rgbs[0].shape[:2]
+    m = None if fg_masks is None else _mask_tensor(fg_masks, device)
+    return _resized_embedding(run(_network_input(_frames_tensor(rgbs, device), m, image_size)), h, w)
+
+
+def _embed_square(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.device, image_size: int,
+                  boxes: list[tuple[int, int, int, int] | None], fg_masks: list[np.ndarray] | None,
+                  run) -> torch.Tensor:
+    """:func:`embed_frames` with ``square`` crops: one batch of image_size × image_size inputs, the squares cut
+    and padded on ``device``."""
+    if fg_masks is None or image_size <= 0:
+        raise ValueError("square crops need the foreground masks (their padding is masked background) "
+                         "and a training scale (image_size > 0)")
+    h, w = rgbs[0].shape[:2]
+    x, m = _frames_tensor(rgbs, device), _mask_tensor(fg_masks, device)
+    inputs, places = [], []
+    for i, box in enumerate(boxes):
+        y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
+        side = max(y1 - y0, x1 - x0)
+        sy, sx = y0 - (side - (y1 - y0)) // 2, x0 - (side - (x1 - x0)) // 2  # the square's corner, frame pixels
+        iy0, iy1, ix0, ix1 = max(sy, 0), min(sy + side, h), max(sx, 0), min(sx + side, w)  # its part in the frame
+        pad = (ix0 - sx, sx + side - ix1, iy0 - sy, sy + side - iy1)  # left, right, top, bottom: mask 0 there
+        inputs.append(_network_input(F.pad(x[i:i + 1, :, iy0:iy1, ix0:ix1], pad),
+                                     F.pad(m[i:i + 1, :, iy0:iy1, ix0:ix1], pad), image_size))
+        places.append((y0, y1, x0, x1, sy, sx, side))
+    emb = run(torch.cat(inputs))
+    out = torch.zeros(len(rgbs), net.cfg.embed_dim, h, w, device=device)
+    for i, (y0, y1, x0, x1, sy, sx, side) in enumerate(places):
+        out[i, :, y0:y1, x0:x1] = _resized_embedding(emb[i:i + 1], side, side)[0, :, y0 - sy:y1 - sy, x0 - sx:x1 - sx]
+    return out
 
 
 def segment_features(net: EmbeddingNet, video: Video, frame_ids: list[int], segmaps: dict[int, np.ndarray],

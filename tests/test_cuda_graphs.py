@@ -7,7 +7,7 @@ import torch
 
 from selfseg.method import cuda_graphs
 from selfseg.method.cuda_graphs import GraphedFunction
-from selfseg.method.features import embed_frames, graphed_forward
+from selfseg.method.features import embed_frames, foreground_box, graphed_forward
 from selfseg.method.network import EmbeddingNet, NetConfig
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU"))]
@@ -76,3 +76,31 @@ def test_graphed_network_embeds_as_the_eager_network(device):
     net.to(torch.float64).to(torch.float32)  # new weight tensors: the old graph must not be replayed
     torch.testing.assert_close(embed_frames(net, frames[:1], device, 48), eager(frames[:1]), rtol=1e-4, atol=1e-5)
     assert graphed_forward(net) is not None and key not in net.__dict__["_cuda_graphs"]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_square_crops_replay_one_graph_as_the_eager_network_embeds(device):
+    """Foreground boxes of four shapes, grown to squares: one input shape, so on CUDA one graph (captured on its
+    second call) serves every frame, and it embeds as the network with graphs off."""
+    torch.manual_seed(0)
+    net = EmbeddingNet(SMALL_NET).to(device).eval()
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 255, (60, 80, 3), dtype=np.uint8) for _ in range(4)]
+    masks = []
+    for y0, y1, x0, x1 in ((5, 20, 10, 70), (10, 55, 30, 50), (40, 60, 0, 80), (20, 40, 20, 40)):
+        m = np.zeros((60, 80), bool)
+        m[y0:y1, x0:x1] = True
+        masks.append(m)
+    boxes = [foreground_box(m, 0.1) for m in masks]
+
+    def embed(i, graphs=True):
+        cuda_graphs.ENABLED = graphs
+        try:
+            return embed_frames(net, frames[i:i + 1], device, 48, boxes[i:i + 1], masks[i:i + 1], square=True)
+        finally:
+            cuda_graphs.ENABLED = True
+
+    for i in range(4):
+        torch.testing.assert_close(embed(i), embed(i, graphs=False), rtol=1e-4, atol=1e-5)
+    graphs = next(iter(net.__dict__["_cuda_graphs"].values()))._graphs
+    assert len(graphs) == (1 if device == "cuda" else 0)

@@ -239,6 +239,43 @@ def test_masked_embedding_does_not_see_the_background():
     assert torch.equal(mask_input(x, [fg]), want)
 
 
+def test_square_crops_run_as_one_batch_at_the_boxes_scale():
+    """Square crops: every frame one image_size² input in one network call (plain crops: one call per frame,
+    each its own shape); a box that is already square and inside the frame embeds as the plain crop does; a box
+    at the frame's edge pads with masked background (the frame outside the mask is not seen); nothing outside
+    the box is embedded."""
+    torch.manual_seed(0)
+    net = EmbeddingNet(NetConfig(width=8, aspp_channels=8, low_level_channels=8, decoder_channels=8)).eval()
+    shapes = []
+    net.register_forward_pre_hook(lambda module, args: shapes.append(tuple(args[0].shape)))
+    rgb, _, fg = _two_objects()
+    wide = np.zeros_like(fg)
+    wide[30:40, 4:60] = True  # box 10 × 56 px → a 56-px square running off the frame's bottom
+    sq = np.zeros_like(fg)
+    sq[10:30, 20:40] = True  # box 20 × 20 px, inside the frame
+    boxes = [foreground_box(m, 0.0) for m in (wide, sq)]
+    emb = embed_frames(net, [rgb, rgb], "cpu", 32, boxes, [wide, sq], square=True)
+    assert shapes == [(2, 3, 32, 32)]
+    shapes.clear()
+    plain = embed_frames(net, [rgb, rgb], "cpu", 32, boxes, [wide, sq])
+    assert shapes == [(1, 3, 6, 32), (1, 3, 32, 32)]
+    assert torch.allclose(emb[1], plain[1], atol=1e-5)  # square box: the same input, so the same embedding
+    assert not torch.allclose(emb[0], plain[0], atol=1e-3)  # a 6 × 32 input against a padded 32 × 32 one
+    for i, (y0, y1, x0, x1) in enumerate(boxes):
+        inside = torch.zeros(48, 64, dtype=torch.bool)
+        inside[y0:y1, x0:x1] = True
+        assert torch.allclose(emb[i][:, inside].norm(dim=0), torch.ones(int(inside.sum())), atol=1e-5)
+        assert torch.all(emb[i][:, ~inside] == 0)
+    other = np.random.default_rng(7).integers(0, 256, rgb.shape, dtype=np.uint8)
+    other[wide] = rgb[wide]
+    assert torch.equal(embed_frames(net, [other], "cpu", 32, boxes[:1], [wide], square=True),
+                       embed_frames(net, [rgb], "cpu", 32, boxes[:1], [wide], square=True))
+    with pytest.raises(ValueError, match="foreground masks"):
+        embed_frames(net, [rgb], "cpu", 32, boxes[:1], square=True)
+    with pytest.raises(ValueError, match="test_square_crop needs"):
+        EmbeddingMethodConfig(train=TrainConfig(fg_crop=True), test_square_crop=True)
+
+
 def test_make_batch_masks_with_the_sources_foreground(analytic_dataset):
     """FrameLabelSource's foreground loader is what mask_background masks with (not its labels)."""
     video = Dataset(analytic_dataset).labeled("000000")
