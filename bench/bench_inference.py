@@ -20,15 +20,15 @@ several runs, since the cores may be
 shared (load average recorded). Training throughput is full training steps (batch, crop and
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
-speed-up over float32 (fastest and median step). On CUDA the network and the mode finding run as CUDA graphs
-(``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside (``*_eager``).
-``--parts training`` times training alone. ``--method-config YAML`` (repeatable) times, instead of the two
-presets, the network as that embedding-method config file runs it: its ``net``, its ``train`` settings (scale, foreground
-crop, masked background, and the training variants on top of its own), ``test_flip`` and ``test_square_crop``; a
-foreground crop gives each frame its own input shape, so that network runs without CUDA graphs, as the method does,
-unless the crops are square (one shape: a graph, frames batched). Paper figure: about 6
-fps. ``--before``: an earlier run's JSON, kept under
-"before" for before/after comparisons.
+speed-up over float32 (fastest and median step); on a GPU also float32 with the batches made ahead in threads, as
+training makes them (``selfseg.method.train.training_batches``). On CUDA the network and the mode finding run as
+CUDA graphs (``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside
+(``*_eager``). ``--parts training`` times training alone. ``--method-config YAML`` (repeatable) times, instead of
+the two presets, the network as that embedding-method config file runs it: its ``net``, its ``train`` settings
+(scale, foreground crop, masked background, and the training variants on top of its own), ``test_flip`` and
+``test_square_crop``; a foreground crop gives each frame its own input shape, so that network runs without CUDA
+graphs, as the method does, unless the crops are square (one shape: a graph, frames batched). Paper figure: about
+6 fps. ``--before``: an earlier run's JSON, kept under "before" for before/after comparisons.
 """
 from __future__ import annotations
 
@@ -52,7 +52,8 @@ from selfseg.method.embed_method import EmbeddingMethodConfig
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, cluster_frame, cluster_frames, split_components
 from selfseg.method.network import EmbeddingNet, NetConfig
-from selfseg.method.train import TrainConfig, new_embedding_net, resolve_device, step_loss
+from selfseg.method.train import (TrainConfig, new_embedding_net, prefetch_threads, resolve_device, step_loss,
+                                  training_batches)
 
 SIZES = ((320, 240), (640, 480))
 # Training speed settings timed side by side (TrainConfig.channels_last, .precision); "fp32" is the default.
@@ -181,7 +182,10 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg:
 def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device) -> dict:
     """Training steps under each of TRAIN_VARIANTS, interleaved (one step of each in turn, ``steps`` rounds after a
     warm-up round), so a change in the machine's load hits every variant alike: {variant: timings}, with the
-    speed-up of each variant's fastest step over float32's."""
+    speed-up of each variant's fastest step over float32's. Each step makes its own batch here. Where training makes
+    its batches ahead in threads (a GPU), float32 training as train_embedding runs it is timed after them
+    ("fp32_batches_ahead": 3 × ``steps`` consecutive steps, the batches from :func:`training_batches`; its
+    ``run_s_per_step`` is the whole run's wall time per step, the pool's start included)."""
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
     runs = {}
@@ -191,25 +195,43 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
         net = new_embedding_net(net_cfg, cfg, device)
         runs[variant] = (cfg, net, torch.optim.AdamW(net.parameters(), lr=cfg.lr), [], [])
 
+    def step(cfg, net, opt, i, batch=None):
+        loss = step_loss(net, source, cfg, i, device, batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     for i in range(steps + 1):
         for cfg, net, opt, wall, cpu in runs.values():
             t, c = time.perf_counter(), time.process_time()
-            loss = step_loss(net, source, cfg, i, device)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
+            step(cfg, net, opt, i)
             if i > 0:  # round 0 warms up
                 wall.append(time.perf_counter() - t)
                 cpu.append(time.process_time() - c)
+    threads, extra = prefetch_threads(device), {}
+    if threads:
+        cfg, net, opt, wall, cpu = runs["fp32"][0], runs["fp32"][1], runs["fp32"][2], [], []
+        t_run = time.perf_counter()
+        for i, batch in zip(range(3 * steps), training_batches(source, cfg, range(3 * steps), threads)):
+            t, c = time.perf_counter(), time.process_time()
+            step(cfg, net, opt, i, batch)
+            wall.append(time.perf_counter() - t)
+            cpu.append(time.process_time() - c)
+        runs["fp32_batches_ahead"] = (cfg, net, opt, wall, cpu)
+        extra = {"batch_threads": threads, "run_s_per_step": round((time.perf_counter() - t_run) / (3 * steps), 3)}
     out = {}
     for variant, (cfg, _, _, wall, cpu) in runs.items():
         t = float(np.min(wall))
         out[variant] = {"batch_size": cfg.batch_size, "crop": list(cfg.crop), "step_s": round(t, 3),
                         "step_median_s": round(float(np.median(wall)), 3), "step_cpu_s": round(float(np.min(cpu)), 3),
                         "images_per_s": round(cfg.batch_size / t, 2), "steps_per_s": round(1 / t, 3),
-                        "minutes_per_800_steps": round(800 * t / 60, 2)}
+                        "minutes_per_800_steps": round(800 * t / 60, 2),
+                        "minutes_per_800_median_steps": round(800 * float(np.median(wall)) / 60, 2)}
+    if extra:
+        out["fp32_batches_ahead"] |= extra | {
+            "minutes_per_800_steps_whole_run": round(800 * extra["run_s_per_step"] / 60, 2)}
     for t in out.values():
         t["speedup_vs_fp32"] = round(out["fp32"]["step_s"] / t["step_s"], 2)
         t["median_speedup_vs_fp32"] = round(out["fp32"]["step_median_s"] / t["step_median_s"], 2)

@@ -23,9 +23,11 @@ import io
 import os
 import shutil
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Iterator, Protocol, Sequence
 
 import cv2
 import numpy as np
@@ -47,6 +49,7 @@ TRAINING_LOG_JSON = "training_log.json"  # settings, per-step losses, session se
 LOSS_CURVE_PNG = "loss_curve.png"  # plot of the per-step loss and its running mean
 # Settings that change how a run executes but not its result; excluded from the resume key.
 _RUNTIME_FIELDS = ("device", "threads", "checkpoint_every")
+PREFETCH_THREADS = 6  # most threads making batches ahead of a GPU's steps (training_batches)
 PRECISIONS = ("fp32", "bf16")  # TrainConfig.precision: the dtype of the network's forward pass in training
 
 
@@ -377,10 +380,45 @@ def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.
             torch.from_numpy(groups))
 
 
-def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: int, device: torch.device
-              ) -> torch.Tensor:
-    """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step))."""
-    rgb, labels, groups = make_batch(source, cfg, step)
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # what make_batch returns
+
+
+def prefetch_threads(device: torch.device) -> int:
+    """Threads that make the next batches while ``device`` runs a step: none on the CPU (the cores train the
+    network), else up to PREFETCH_THREADS, one core left to the loop that feeds the device."""
+    return 0 if device.type == "cpu" else max(1, min(PREFETCH_THREADS, (os.cpu_count() or 2) - 1))
+
+
+def training_batches(source: LabelSource, cfg: TrainConfig, steps: range, threads: int = 0) -> Iterator[Batch]:
+    """:func:`make_batch` of each step of ``steps``, in order. With ``threads`` > 0 a thread pool makes them up to
+    2 × threads steps ahead (augmentation overlaps the device's work); a batch is a pure function of (seed, step),
+    so the batches are the same either way."""
+    if threads <= 0:
+        for step in steps:
+            yield make_batch(source, cfg, step)
+        return
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="batches")
+    try:
+        todo, pending = iter(steps), deque()
+        for step in todo:
+            pending.append(pool.submit(make_batch, source, cfg, step))
+            if len(pending) == 2 * threads:
+                break
+        while pending:
+            batch = pending.popleft().result()
+            step = next(todo, None)
+            if step is not None:
+                pending.append(pool.submit(make_batch, source, cfg, step))
+            yield batch
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def step_loss(net: EmbeddingNet, source: LabelSource, cfg: TrainConfig, step: int, device: torch.device,
+              batch: Batch | None = None) -> torch.Tensor:
+    """Forward pass and contrastive loss of training step ``step`` (deterministic in (seed, step)); ``batch``:
+    that step's :func:`make_batch`, if already made."""
+    rgb, labels, groups = make_batch(source, cfg, step) if batch is None else batch
     rgb = cfg.layout(rgb.to(device))
     with cfg.autocast(device):
         emb = net(rgb)
@@ -492,24 +530,28 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
     t0, images = time.perf_counter(), 0
     bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, disable=not progress, desc="train φ",
                dynamic_ncols=True)
-    for step in bar:
-        for g in opt.param_groups:
-            g["lr"] = cfg.lr * (1 - step / cfg.steps) ** 0.9
-        loss = step_loss(net, source, cfg, step, device)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-        if not np.isfinite(losses[-1]):
-            raise FloatingPointError(f"training loss became {losses[-1]} at step {step}; lower lr "
-                                     f"(now {cfg.lr}) or check the label source")
-        images += cfg.batch_size
-        bar.set_postfix(loss=f"{losses[-1]:.4f}")
-        done = step + 1
-        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            _save_checkpoint(out_dir, done, {"step": done, "model": net.state_dict(), "optimizer": opt.state_dict(),
-                                             "losses": losses, "key_hash": hash_json(key)})
-            _write_log(out_dir, key, losses, time.perf_counter() - t0, images, device)
+    batches = training_batches(source, cfg, range(start, cfg.steps), prefetch_threads(device))
+    try:
+        for step, batch in zip(bar, batches):
+            for g in opt.param_groups:
+                g["lr"] = cfg.lr * (1 - step / cfg.steps) ** 0.9
+            loss = step_loss(net, source, cfg, step, device, batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            losses.append(loss.item())
+            if not np.isfinite(losses[-1]):
+                raise FloatingPointError(f"training loss became {losses[-1]} at step {step}; lower lr "
+                                         f"(now {cfg.lr}) or check the label source")
+            images += cfg.batch_size
+            bar.set_postfix(loss=f"{losses[-1]:.4f}")
+            done = step + 1
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+                _save_checkpoint(out_dir, done, {"step": done, "model": net.state_dict(), "optimizer": opt.state_dict(),
+                                                 "losses": losses, "key_hash": hash_json(key)})
+                _write_log(out_dir, key, losses, time.perf_counter() - t0, images, device)
+    finally:
+        batches.close()  # its thread pool, at once (an error in a step too)
     bar.close()
     _save_torch(weights, {"net_cfg": to_dict(net_cfg), "state_dict": net.state_dict(), "key_hash": hash_json(key)})
     drop_checkpoints(out_dir)

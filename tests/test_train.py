@@ -1,5 +1,6 @@
 """The embedding trainer (augmentation, checkpoints, resume), segment features, and the supervised method."""
 import json
+import threading
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from selfseg.method.features import embed_frames, foreground_box, mask_input, se
 from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
 from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, batch_items, load_embedding_net, make_batch,
-                                  train_embedding)
+                                  train_embedding, training_batches)
 from selfseg.registry import get_method_class
 
 torch.set_num_threads(2)
@@ -274,6 +275,27 @@ def test_square_crops_run_as_one_batch_at_the_boxes_scale():
         embed_frames(net, [rgb], "cpu", 32, boxes[:1], square=True)
     with pytest.raises(ValueError, match="test_square_crop needs"):
         EmbeddingMethodConfig(train=TrainConfig(fg_crop=True), test_square_crop=True)
+
+
+def test_batches_made_ahead_in_threads_are_the_serial_batches():
+    """training_batches with a thread pool yields, in step order, exactly the batches made one by one (a batch is
+    a pure function of (seed, step)); resuming at a later step starts there; the pool is shut down when the
+    consumer stops early."""
+    rgb, lab, fg = _two_objects()
+    cfg = _plain(batch_size=3, crop=(32, 48), image_size=48, scale_range=(0.75, 1.25), flip=True, brightness=0.3,
+                 hue=0.05)
+    source = [(rgb, lab), (rgb[::-1].copy(), lab[::-1].copy())]
+    serial = list(training_batches(source, cfg, range(2, 9)))
+    threaded = list(training_batches(source, cfg, range(2, 9), threads=3))
+    assert len(serial) == len(threaded) == 7
+    for a, b in zip(serial, threaded):
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert not torch.equal(serial[0][0], serial[1][0])  # the steps differ
+    assert all(torch.equal(x, y) for x, y in zip(serial[3], make_batch(source, cfg, 5)))
+    early = training_batches(source, cfg, range(100), threads=2)
+    next(early)
+    early.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("batches")]
 
 
 def test_make_batch_masks_with_the_sources_foreground(analytic_dataset):
