@@ -86,9 +86,9 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
     Without boxes, or with square ones (one input shape), an evaluation-mode net runs as a CUDA graph on a GPU
     (:func:`graphed_forward`); plain crops differ in shape from frame to frame, so they run without graphs.
     """
-    run = graphed_forward(net, flip) if not net.training else (lambda x: forward(net, x, flip))
+    graphed = graphed_forward(net, flip) if not net.training else (lambda x: forward(net, x, flip))
     if boxes is not None and square:
-        return _embed_square(net, rgbs, device, image_size, boxes, fg_masks, run)
+        return _embed_square(net, rgbs, device, image_size, boxes, fg_masks, graphed)
     if boxes is not None:
         h, w = rgbs[0].shape[:2]
         out = torch.zeros(len(rgbs), net.cfg.embed_dim, h, w, device=device)
@@ -98,7 +98,7 @@ def embed_frames(net: EmbeddingNet, rgbs: list[np.ndarray], device: str | torch.
             out[i, :, y0:y1, x0:x1] = _embed(net, [np.ascontiguousarray(rgb[y0:y1, x0:x1])], device, image_size, fg,
                                              lambda x: forward(net, x, flip))[0]
         return out
-    return _embed(net, rgbs, device, image_size, fg_masks, run)
+    return _embed(net, rgbs, device, image_size, fg_masks, graphed)
 
 
 def _frames_tensor(rgbs: list[np.ndarray], device: str | torch.device) -> torch.Tensor:
