@@ -25,8 +25,9 @@ section of the preset's leaderboard. ``check`` refuses a checkout whose code or 
 ran from such a commit or from a dirty tree.
 
 **Board.** Per-seed columns (development seeds marked, never pooled), the fresh seeds pooled over every test
-frame, and paired differences ``ours`` − each baseline and ablation with bootstrap 95 % CIs over the pooled
-test videos (:mod:`selfseg.eval.pooled`); a claim holds only when its CI excludes 0. Table II per seed too.
+frame, and paired differences ``ours`` − each baseline and ablation (V2's, where ``ours`` did not run:
+:data:`CLAIMANTS`) with bootstrap 95 % CIs over the pooled test videos (:mod:`selfseg.eval.pooled`); a claim
+holds only when its CI excludes 0. Table II per seed too.
 The section sits between its own markers in ``leaderboards/<preset>.md``, so the leaderboard builder
 (:mod:`selfseg.eval.leaderboard`) leaves it alone.
 
@@ -67,6 +68,9 @@ NAMED_END = "<!-- END CONFIRMATION {name} -->"
 BASELINES = ("supervised", "depth-clustering", "lccp-frame", "sdmaskrcnn-sim", "uois-sim", "fg-components")
 ABLATIONS = ("ours-v2", "ours-v3", "ours-v4", "ours-paper-pruning")
 TABLE2_ROWS = ("lccp", "lccp+symseg", "ours-matching", "gt-merging")
+# Whose claims the board tests: ``ours``, or where it did not run (a preset whose matching does not terminate,
+# e.g. ``cluttered``) V2, the self-supervised pipeline without matching; fixed here, never chosen after the seeds.
+CLAIMANTS = ("ours", "ours-v2")
 
 
 class FreezeError(ValueError):
@@ -245,13 +249,14 @@ def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed
         lines.append(f"| {n} | {fmt(frame_mean({v: a[v] for v in common}))} | {fmt(frame_mean({v: b[v] for v in common}))} "
                      f"| {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | {d['wins']} of {d['n_videos']} "
                      f"| {verdict} |")
-    ours = pooled_videos(noisy, "ours")
-    claims = [(o, paired(ours, pooled_videos(noisy, o))) for o in (*BASELINES, *ABLATIONS)
-              if ours and pooled_videos(noisy, o)]
+    a = claimant(noisy)
+    mine = pooled_videos(noisy, a) if a else {}
+    claims = [(o, paired(mine, pooled_videos(noisy, o))) for o in (*BASELINES, *ABLATIONS)
+              if mine and o != a and pooled_videos(noisy, o)]
     if claims:
-        lines += ["", "`ours`'s claims with noisy depth (same protocol):", "",
+        lines += ["", f"`{a}`'s claims with noisy depth (same protocol):", "",
                   "| claim | mean | 95 % CI | videos A > B | verdict |", "|---|---|---|---|---|"]
-        lines += [f"| ours − {o} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
+        lines += [f"| {a} − {o} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
                   f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |" for o, d in claims]
     t2 = [n for n in TABLE2_ROWS if any(n in noisy_3d.get(s.label, {}) for s in noisy)]
     if t2:
@@ -264,6 +269,11 @@ def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed
                 cells.append(f"{fmt(e[0]['metrics']['IoU']) if e else '—'} → {fmt(q[0]['metrics']['IoU']) if q else '—'}")
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
     return lines
+
+
+def claimant(fresh: list[Seed]) -> str | None:
+    """The first of :data:`CLAIMANTS` with results in the fresh seeds (None: neither ran)."""
+    return next((n for n in CLAIMANTS if pooled_videos(fresh, n)), None)
 
 
 def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d: dict,
@@ -288,22 +298,26 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
     for n in names:
         cells = [_cell(pooled_videos([s], n)) for s in seeds] + [_cell(pooled_videos(fresh, n))]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    a = claimant(fresh)
+    if a not in (None, CLAIMANTS[0]):
+        lines += ["", f"`{CLAIMANTS[0]}` did not run on these seeds, so the claims below are `{a}`'s, the "
+                  "self-supervised pipeline without matching across scenes."]
     lines += ["", f"Paired differences over the pooled fresh seeds' test videos (IoU; A − B per video, weighted by "
               f"its frames; 95 % CI by bootstrap over videos). A claim holds only when its CI excludes 0:", "",
               "| claim | mean | 95 % CI | videos A > B | verdict |"
               + (f" {'; '.join(s.label for s in dev_seeds)} (development) |" if dev_seeds else ""),
               "|---|---|---|---|---|" + ("---|" if dev_seeds else "")]
-    ours = pooled_videos(fresh, "ours")
+    mine = pooled_videos(fresh, a) if a else {}
     for other in (*BASELINES, *ABLATIONS):
         theirs = pooled_videos(fresh, other)
-        if not ours or not theirs:
+        if not mine or not theirs or other == a:
             continue
-        d = paired(ours, theirs)
-        row = (f"| ours − {other} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
+        d = paired(mine, theirs)
+        row = (f"| {a} − {other} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
                f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |")
         if dev_seeds:
-            dv = [paired(pooled_videos([s], "ours"), pooled_videos([s], other)) for s in dev_seeds
-                  if pooled_videos([s], "ours") and pooled_videos([s], other)]
+            dv = [paired(pooled_videos([s], a), pooled_videos([s], other)) for s in dev_seeds
+                  if pooled_videos([s], a) and pooled_videos([s], other)]
             row += " " + ("; ".join(f"{x['mean']:+.3f} [{x['ci95'][0]:+.3f}, {x['ci95'][1]:+.3f}]" for x in dv) or "—") + " |"
         lines.append(row)
     sup = pooled_videos(fresh, "supervised")

@@ -33,13 +33,18 @@ ev() {  # ev NAME METHOD ARGS...: one run under the protocol (3 folds), resuming
 }
 job_geometric() { for m in fg-components depth-clustering lccp-frame oracle; do ev "$m" "$m" || return; done; }
 job_ours-v2() { ev ours-v2 ours-v2 --config "$OURS"; }  # trains φ1, which ours and Table II read
-job_ours() { ev ours ours --config "$OURS"; }
+# cluttered: no matching across scenes (its rule: scripts/benchmark.sh), so no `ours` and Table II without its row
+MATCHING=1; [ "$PRESET" = cluttered ] && MATCHING=0
+job_ours() { [ $MATCHING = 0 ] || ev ours ours --config "$OURS"; }
 job_supervised() { ev supervised supervised --config "$SUP"; }
 job_generate-disjoint() {
   $BIN/generate_scenes --preset "$PRESET-noisy" "${OTHERS[@]}" --scenes 6 --seed 1 --out "$RUN/data-disjoint" --workers 2 --quiet
 }
 job_sdmaskrcnn-sim() { ev sdmaskrcnn-sim sdmaskrcnn-sim --set train_data="$RUN/data-disjoint"; }
-job_evaluate3d() { $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS" --quiet; }
+job_evaluate3d() {
+  local rows=(); [ $MATCHING = 1 ] || rows=(--rows lccp,lccp+symseg,gt-merging)
+  $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS" --quiet "${rows[@]}"
+}
 
 for seed in $($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET" "${FZ[@]}"); do
   echo "scripts/confirm_noisy.sh: $PRESET-noisy seed $seed ($(date -u +%FT%TZ))"

@@ -145,6 +145,30 @@ def test_board_reports_the_drop_with_noisy_depth_paired_per_video(runs, tmp_path
     assert "noisy depth" not in page.read_text()
 
 
+
+def test_where_ours_did_not_run_the_claims_are_v2s(runs, tmp_path):
+    """Seeds without `ours` (a preset whose matching does not terminate): the board says so and tests V2's claims
+    (here the oracle's records filed as V2), in the exact and in the noisy section."""
+    root, rec = runs
+    v2_root = tmp_path / "v2"
+    for seed in (101, 202):
+        src = root / SEED_RESULTS_DIR.format(seed=seed)
+        for path in src.glob("scores/*/*/fold*.json"):
+            name = {"ours": "ours-v2"}.get(path.parent.name, path.parent.name)
+            to = v2_root / SEED_RESULTS_DIR.format(seed=seed) / path.relative_to(src).parent.parent / name / path.name
+            to.parent.mkdir(parents=True, exist_ok=True)
+            write_json(to, {**read_json(path), "name": name})
+    page = tmp_path / "analytic.md"
+    board(rec, v2_root, [], page, v2_root)
+    text = page.read_text()
+    assert "`ours` did not run on these seeds, so the claims below are `ours-v2`'s" in text
+    claims = [line for line in text.splitlines() if line.startswith("| ours-v2 − ")]
+    assert len(claims) == 2 and all(c.startswith("| ours-v2 − depth-clustering |") for c in claims)
+    assert "**holds**" in claims[0] and "6 of 6" in claims[0]
+    assert "| ours − " not in text and "| ours-v2 − ours-v2" not in text
+    board(rec, root, [], page)  # with `ours` the claims are its own again
+    assert "did not run on these seeds" not in page.read_text()
+
 def test_board_refuses_a_record_from_code_that_moved_since_the_freeze(runs, tmp_path):
     root, rec = runs
     first = _git("rev-list", "--max-parents=0", "HEAD").splitlines()[0]
