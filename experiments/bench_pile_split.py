@@ -1,0 +1,119 @@
+"""Diagnostic, not a test: would cutting the segment graph's edges between dissimilar segments split a cluttered
+scene's piles into components small enough for matching, and how many same-object edges would the cut lose?
+
+    .venv/bin/python experiments/bench_pile_split.py --data DIR --config configs/ours-cluttered.yaml [--set k=v ...]
+        --results OUT --features PHI1_FEATURES_DIR --name NAME [--taus 0.5,0.7,0.9]
+        [--json experiments/results/pile_split.json]
+
+On a development dataset (it reads the ground truth). OUT is a results folder whose stage cache holds the
+videos' reconstructions (``evaluate`` / ``evaluate3d --out OUT``); the over-segmentation of the config (with the
+``--set`` overrides) is read from it or computed into it. PHI1_FEATURES_DIR holds one fold's φ1 feature per
+segment (``<video>.npy``, the ``features-*`` folder of a φ1 stage), for that fold's training videos, which are
+the videos measured. An edge is kept when the cosine of its two segments' φ1 features is at least τ (a segment
+never seen by φ1 has a zero feature, so its edges are cut). Per τ: the components' sizes (matching's problem
+size grows with the product of two components' sizes), the share of same-object edges kept (each cut one is a
+merge matching can no longer make within a scene) and of different-object edges cut, and the share of
+components that hold more than one object.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from common import save
+
+from selfseg.config import load_config
+from selfseg.dataset import Dataset
+from selfseg.eval.merges import segment_instances, summary
+from selfseg.eval.points import GT_MAX_DIST_M
+from selfseg.eval.table2 import labeled_scenes
+from selfseg.fileio import read_json
+from selfseg.method.pipeline import OursConfig
+
+
+def components(n: int, edges: np.ndarray) -> np.ndarray:
+    """Component id of each of ``n`` nodes under the undirected ``edges`` (E×2)."""
+    g = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+def split_row(scenes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], tau: float | None) -> dict:
+    """The measures at one τ (None: no cut) over ``scenes``: (features S×D, edges E×2, GT instance per segment)."""
+    sizes, largest, kept_same, n_same, cut_diff, n_diff, mixed, n_comp = [], [], 0, 0, 0, 0, 0, 0
+    for feats, edges, inst in scenes:
+        f = feats / np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
+        cos = np.einsum("ij,ij->i", f[edges[:, 0]], f[edges[:, 1]]) if len(edges) else np.zeros(0)
+        keep = np.ones(len(edges), bool) if tau is None else cos >= tau
+        same = (inst[edges[:, 0]] == inst[edges[:, 1]]) & (inst[edges[:, 0]] > 0)
+        kept_same += int((keep & same).sum())
+        n_same += int(same.sum())
+        cut_diff += int((~keep & ~same).sum())
+        n_diff += int((~same).sum())
+        comp = components(len(feats), edges[keep])
+        counts = np.bincount(comp)
+        sizes += counts.tolist()
+        largest.append(int(counts.max()))
+        for c in range(len(counts)):
+            objs = set(inst[comp == c].tolist()) - {0}
+            mixed += len(objs) > 1
+        n_comp += len(counts)
+    return {"tau": tau, "components": n_comp, "component_size": summary(sizes), "largest_per_scene": summary(largest),
+            "same_object_edges_kept": kept_same / max(n_same, 1), "same_object_edges": n_same,
+            "different_object_edges_cut": cut_diff / max(n_diff, 1), "different_object_edges": n_diff,
+            "components_with_several_objects": mixed / max(n_comp, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="a development dataset (reads its ground truth)")
+    p.add_argument("--config", required=True)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override (repeatable)")
+    p.add_argument("--results", required=True, help="the results folder whose stage cache holds the reconstructions")
+    p.add_argument("--features", required=True, help="a φ1 stage's features-* folder (<video>.npy per video)")
+    p.add_argument("--name", required=True, help="the row's name (the setting measured)")
+    p.add_argument("--taus", default="0.3,0.5,0.6,0.7,0.8,0.9")
+    p.add_argument("--json", default="experiments/results/pile_split.json")
+    args = p.parse_args(argv)
+    dataset = Dataset(args.data)
+    config = load_config(OursConfig, args.config, args.set)
+    videos = sorted(f.stem for f in Path(args.features).glob("*.npy"))
+    if not videos:
+        print(f"bench_pile_split: {args.features}: no <video>.npy feature files", file=sys.stderr)
+        return 2
+    seg, _, gt_inst = labeled_scenes(dataset, config, Path(args.results), ("lccp+symseg",), None, GT_MAX_DIST_M,
+                                     None, gt_labels=True)
+    scenes = []
+    for s in seg.scenes:
+        if s.video_id not in videos:
+            continue
+        feats = np.load(Path(args.features) / f"{s.video_id}.npy")
+        if len(feats) != s.graph.n_segments:
+            print(f"bench_pile_split: {args.features}/{s.video_id}.npy: {len(feats)} features for "
+                  f"{s.graph.n_segments} segments (another over-segmentation's φ1?)", file=sys.stderr)
+            return 2
+        inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
+        scenes.append((feats, np.asarray(s.graph.edges).reshape(-1, 2), inst))
+    rows = [{"name": args.name, "sets": args.set, "videos": videos, **split_row(scenes, t)}
+            for t in (None, *(float(x) for x in args.taus.split(",")))]
+    print(f"{args.name}: {len(scenes)} scenes")
+    print("   tau  comps  largest/scene (median, max)  same-object edges kept  diff-object edges cut  mixed comps")
+    for r in rows:
+        t = "none" if r["tau"] is None else f"{r['tau']:.2f}"
+        print(f"{t:>6} {r['components']:>6}  {r['largest_per_scene']['median']:>10.0f} {r['largest_per_scene']['max']:>6.0f}"
+              f"  {r['same_object_edges_kept']:>22.3f}  {r['different_object_edges_cut']:>21.3f}"
+              f"  {r['components_with_several_objects']:>11.3f}")
+    earlier = []
+    if Path(args.json).is_file():
+        earlier = [r for r in read_json(args.json).get("rows", []) if r.get("name") != args.name]
+    save(args.json, "segment-graph edges cut below a φ1 cosine: pile components against lost same-object edges",
+         args.data, dataset, args.config, earlier + rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
