@@ -1,16 +1,18 @@
-"""Diagnostic, not a test: would cutting the segment graph's edges between dissimilar segments split a cluttered
-scene's piles into components small enough for matching, and how many same-object edges would the cut lose?
+"""Diagnostic, not a test: would cutting the segment graph's weak edges split a cluttered scene's piles into
+components small enough for matching, and how many same-object edges would the cut lose?
 
     .venv/bin/python experiments/bench_pile_split.py --data DIR --config configs/ours-cluttered.yaml [--set k=v ...]
-        --results OUT --features PHI1_FEATURES_DIR --name NAME [--taus 0.5,0.7,0.9]
+        --results OUT --features PHI1_FEATURES_DIR --name NAME [--cue phi1|contact] [--taus 0.5,0.7,0.9]
         [--json experiments/results/pile_split.json]
 
 On a development dataset (it reads the ground truth). OUT is a results folder whose stage cache holds the
 videos' reconstructions (``evaluate`` / ``evaluate3d --out OUT``); the over-segmentation of the config (with the
 ``--set`` overrides) is read from it or computed into it. PHI1_FEATURES_DIR holds one fold's φ1 feature per
 segment (``<video>.npy``, the ``features-*`` folder of a φ1 stage), for that fold's training videos, which are
-the videos measured. An edge is kept when the cosine of its two segments' φ1 features is at least τ (a segment
-never seen by φ1 has a zero feature, so its edges are cut). Per τ: the components' sizes (matching's problem
+the videos measured. An edge is kept when its cue is at least τ: ``phi1``, the cosine of its two segments' φ1
+features (a segment never seen by φ1 has a zero feature, so its edges are cut); ``contact``, the number of
+boundary point pairs behind it (:func:`~selfseg.method.segment_graph.boundary_pairs`, growing with the length of
+the shared boundary; touching objects meet in small patches). Per τ: the components' sizes (matching's problem
 size grows with the product of two components' sizes), the share of same-object edges kept (each cut one is a
 merge matching can no longer make within a scene) and of different-object edges cut, and the share of
 components that hold more than one object.
@@ -34,6 +36,7 @@ from selfseg.eval.points import GT_MAX_DIST_M
 from selfseg.eval.table2 import labeled_scenes
 from selfseg.fileio import read_json
 from selfseg.method.pipeline import OursConfig
+from selfseg.method.segment_graph import boundary_pairs
 
 
 def components(n: int, edges: np.ndarray) -> np.ndarray:
@@ -42,19 +45,32 @@ def components(n: int, edges: np.ndarray) -> np.ndarray:
     return connected_components(g, directed=False)[1]
 
 
-def split_row(scenes: list[tuple[np.ndarray, np.ndarray, np.ndarray]], tau: float | None) -> dict:
-    """The measures at one τ (None: no cut) over ``scenes``: (features S×D, edges E×2, GT instance per segment)."""
+def phi1_cosine(feats: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Cosine of the φ1 features (S×D) of each edge's two segments (0 where one is zero: never seen)."""
+    f = feats / np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
+    return np.einsum("ij,ij->i", f[edges[:, 0]], f[edges[:, 1]]) if len(edges) else np.zeros(0)
+
+
+def contact(points: np.ndarray, graph) -> np.ndarray:
+    """Boundary point pairs behind each edge of ``graph`` (a :class:`SegmentGraph` over ``points``, N×3 m)."""
+    pairs, counts = np.unique(boundary_pairs(points, graph.labels, graph.adjacency_radius_m), axis=0,
+                              return_counts=True)
+    index = {(int(a), int(b)): int(c) for (a, b), c in zip(pairs, counts)}
+    return np.array([index[(int(a), int(b))] for a, b in graph.edges], np.float64)
+
+
+def split_row(scenes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], tau: float | None) -> dict:
+    """The measures at one τ (None: no cut) over ``scenes``: (segments, edges E×2, the cue per edge, GT instance
+    per segment)."""
     sizes, largest, kept_same, n_same, cut_diff, n_diff, mixed, n_comp = [], [], 0, 0, 0, 0, 0, 0
-    for feats, edges, inst in scenes:
-        f = feats / np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
-        cos = np.einsum("ij,ij->i", f[edges[:, 0]], f[edges[:, 1]]) if len(edges) else np.zeros(0)
-        keep = np.ones(len(edges), bool) if tau is None else cos >= tau
+    for n, edges, cue, inst in scenes:
+        keep = np.ones(len(edges), bool) if tau is None else cue >= tau
         same = (inst[edges[:, 0]] == inst[edges[:, 1]]) & (inst[edges[:, 0]] > 0)
         kept_same += int((keep & same).sum())
         n_same += int(same.sum())
         cut_diff += int((~keep & ~same).sum())
         n_diff += int((~same).sum())
-        comp = components(len(feats), edges[keep])
+        comp = components(n, edges[keep])
         counts = np.bincount(comp)
         sizes += counts.tolist()
         largest.append(int(counts.max()))
@@ -76,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results", required=True, help="the results folder whose stage cache holds the reconstructions")
     p.add_argument("--features", required=True, help="a φ1 stage's features-* folder (<video>.npy per video)")
     p.add_argument("--name", required=True, help="the row's name (the setting measured)")
-    p.add_argument("--taus", default="0.3,0.5,0.6,0.7,0.8,0.9")
+    p.add_argument("--cue", choices=("phi1", "contact"), default="phi1", help="what an edge is kept by")
+    p.add_argument("--taus", default="0.3,0.5,0.6,0.7,0.8,0.9", help="thresholds on the cue")
     p.add_argument("--json", default="experiments/results/pile_split.json")
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
@@ -97,19 +114,22 @@ def main(argv: list[str] | None = None) -> int:
                   f"{s.graph.n_segments} segments (another over-segmentation's φ1?)", file=sys.stderr)
             return 2
         inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
-        scenes.append((feats, np.asarray(s.graph.edges).reshape(-1, 2), inst))
-    rows = [{"name": args.name, "sets": args.set, "videos": videos, **split_row(scenes, t)}
+        edges = np.asarray(s.graph.edges).reshape(-1, 2)
+        cue = phi1_cosine(feats, edges) if args.cue == "phi1" else contact(s.recon.points_w, s.graph)
+        scenes.append((s.graph.n_segments, edges, cue, inst))
+    rows = [{"name": args.name, "cue": args.cue, "sets": args.set, "videos": videos, **split_row(scenes, t)}
             for t in (None, *(float(x) for x in args.taus.split(",")))]
     print(f"{args.name}: {len(scenes)} scenes")
     print("   tau  comps  largest/scene (median, max)  same-object edges kept  diff-object edges cut  mixed comps")
     for r in rows:
-        t = "none" if r["tau"] is None else f"{r['tau']:.2f}"
+        t = "none" if r["tau"] is None else f"{r['tau']:g}"
         print(f"{t:>6} {r['components']:>6}  {r['largest_per_scene']['median']:>10.0f} {r['largest_per_scene']['max']:>6.0f}"
               f"  {r['same_object_edges_kept']:>22.3f}  {r['different_object_edges_cut']:>21.3f}"
               f"  {r['components_with_several_objects']:>11.3f}")
     earlier = []
     if Path(args.json).is_file():
-        earlier = [r for r in read_json(args.json).get("rows", []) if r.get("name") != args.name]
+        earlier = [r for r in read_json(args.json).get("rows", [])
+                   if (r.get("name"), r.get("cue", "phi1")) != (args.name, args.cue)]
     save(args.json, "segment-graph edges cut below a φ1 cosine: pile components against lost same-object edges",
          args.data, dataset, args.config, earlier + rows)
     return 0

@@ -99,26 +99,35 @@ def build_segment_graph(points: np.ndarray, labels: np.ndarray, adjacency_radius
     centroids = np.zeros((S, 3))
     np.add.at(centroids, labels[idx], points[idx])
     centroids /= np.maximum(sizes, 1)[:, None]
-    edges = np.zeros((0, 2), np.int32)
-    if len(idx) > 1:
-        # one representative (mean) point per segment and cell of a quarter radius keeps dense clouds fast
-        cell = np.floor(points[idx] / (0.25 * adjacency_radius_m)).astype(np.int64)
-        key, lab = pack_keys(cell - cell.min(0)), labels[idx]
-        order = np.lexsort((lab, key))
-        new = np.r_[True, (np.diff(key[order]) != 0) | (np.diff(lab[order]) != 0)]
-        rep = np.empty(len(idx), np.int64)
-        rep[order] = np.cumsum(new) - 1
-        cnt = np.bincount(rep)
-        rep_pts = np.zeros((len(cnt), 3))
-        np.add.at(rep_pts, rep, points[idx])
-        rep_pts /= cnt[:, None]
-        rep_lab = np.zeros(len(cnt), np.int32)
-        rep_lab[rep] = labels[idx]
-        pairs = cKDTree(rep_pts).query_pairs(adjacency_radius_m, output_type="ndarray")
-        a, b = rep_lab[pairs[:, 0]], rep_lab[pairs[:, 1]]
-        cross = a != b
-        if cross.any():
-            e = np.stack([np.minimum(a[cross], b[cross]), np.maximum(a[cross], b[cross])], 1)
-            edges = np.unique(e, axis=0).astype(np.int32)
+    pairs = boundary_pairs(points, labels, adjacency_radius_m)
+    edges = np.unique(pairs, axis=0).astype(np.int32) if len(pairs) else np.zeros((0, 2), np.int32)
     return SegmentGraph(labels=labels, edges=edges, centroids=centroids, sizes=sizes,
                         adjacency_radius_m=float(adjacency_radius_m))
+
+
+def boundary_pairs(points: np.ndarray, labels: np.ndarray, adjacency_radius_m: float) -> np.ndarray:
+    """P×2 int32 segment pairs (i < j), one row per pair of cell representatives of two segments within
+    ``adjacency_radius_m`` (m) of each other: the pairs behind each edge of :func:`build_segment_graph`, whose count
+    per edge grows with the length of the two segments' shared boundary. ``labels``: −1 ignored."""
+    labels = np.asarray(labels, np.int32)
+    idx = np.nonzero(labels >= 0)[0]
+    if len(idx) < 2:
+        return np.zeros((0, 2), np.int32)
+    # one representative (mean) point per segment and cell of a quarter radius keeps dense clouds fast
+    points = np.asarray(points, np.float64)
+    cell = np.floor(points[idx] / (0.25 * adjacency_radius_m)).astype(np.int64)
+    key, lab = pack_keys(cell - cell.min(0)), labels[idx]
+    order = np.lexsort((lab, key))
+    new = np.r_[True, (np.diff(key[order]) != 0) | (np.diff(lab[order]) != 0)]
+    rep = np.empty(len(idx), np.int64)
+    rep[order] = np.cumsum(new) - 1
+    cnt = np.bincount(rep)
+    rep_pts = np.zeros((len(cnt), 3))
+    np.add.at(rep_pts, rep, points[idx])
+    rep_pts /= cnt[:, None]
+    rep_lab = np.zeros(len(cnt), np.int32)
+    rep_lab[rep] = lab
+    pairs = cKDTree(rep_pts).query_pairs(adjacency_radius_m, output_type="ndarray")
+    a, b = rep_lab[pairs[:, 0]], rep_lab[pairs[:, 1]]
+    cross = a != b
+    return np.stack([np.minimum(a[cross], b[cross]), np.maximum(a[cross], b[cross])], 1).astype(np.int32)

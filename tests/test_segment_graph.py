@@ -4,7 +4,7 @@ import pytest
 
 from selfseg.analytic import box, fused_cloud
 from selfseg.fileio import FileFormatError
-from selfseg.method.segment_graph import SegmentGraph, build_segment_graph
+from selfseg.method.segment_graph import SegmentGraph, boundary_pairs, build_segment_graph
 
 
 @pytest.fixture(scope="module")
@@ -22,6 +22,20 @@ def test_touching_boxes_share_one_edge_separated_box_is_its_own_component(three_
     assert [c.tolist() for c in comps] == [[0, 1], [2]]
     assert g.sizes.sum() == len(P) and np.array_equal(g.point_indices(2), np.nonzero(gt == 2)[0])
     assert np.allclose(g.centroids[2][:2], (0.12, 0.0), atol=0.005)
+
+
+def test_boundary_pairs_count_grows_with_the_shared_boundarys_length():
+    """A 12 × 4 × 4 cm box's seen surface (no bottom: it stands on the table) split two ways: across at x = 0 (a
+    12-cm boundary over the top and the two long sides) and lengthwise at y = 0 (20 cm: the top's 12 and the two
+    ends' 4). The pairs behind the single edge number as the boundary lengths do, and their unique rows are the
+    graph's edges."""
+    P, _, _ = fused_cloud([box((0.12, 0.04, 0.04), (0.0, 0.0, 0.02))])
+    counts = []
+    for lab in ((P[:, 0] > 0).astype(np.int32), (P[:, 1] > 0).astype(np.int32)):
+        pairs = boundary_pairs(P, lab, 0.0075)
+        assert np.unique(pairs, axis=0).tolist() == build_segment_graph(P, lab).edges.tolist() == [[0, 1]]
+        counts.append(len(pairs))
+    assert 1.4 < counts[1] / counts[0] < 2.0  # 20 / 12 ≈ 1.67
 
 
 def test_unlabelled_points_are_ignored_and_labels_must_be_consecutive(three_boxes):
