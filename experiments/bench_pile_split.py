@@ -20,12 +20,11 @@ components that hold more than one object.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from common import save
 
@@ -36,13 +35,7 @@ from selfseg.eval.points import GT_MAX_DIST_M
 from selfseg.eval.table2 import labeled_scenes
 from selfseg.fileio import read_json
 from selfseg.method.pipeline import OursConfig
-from selfseg.method.segment_graph import boundary_pairs
-
-
-def components(n: int, edges: np.ndarray) -> np.ndarray:
-    """Component id of each of ``n`` nodes under the undirected ``edges`` (E×2)."""
-    g = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    return connected_components(g, directed=False)[1]
+from selfseg.method.segment_graph import SegmentGraph, boundary_pairs
 
 
 def phi1_cosine(feats: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -51,7 +44,7 @@ def phi1_cosine(feats: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", f[edges[:, 0]], f[edges[:, 1]]) if len(edges) else np.zeros(0)
 
 
-def contact(points: np.ndarray, graph) -> np.ndarray:
+def contact(points: np.ndarray, graph: SegmentGraph) -> np.ndarray:
     """Boundary point pairs behind each edge of ``graph`` (a :class:`SegmentGraph` over ``points``, N×3 m)."""
     pairs, counts = np.unique(boundary_pairs(points, graph.labels, graph.adjacency_radius_m), axis=0,
                               return_counts=True)
@@ -59,25 +52,23 @@ def contact(points: np.ndarray, graph) -> np.ndarray:
     return np.array([index[(int(a), int(b))] for a, b in graph.edges], np.float64)
 
 
-def split_row(scenes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], tau: float | None) -> dict:
-    """The measures at one τ (None: no cut) over ``scenes``: (segments, edges E×2, the cue per edge, GT instance
-    per segment)."""
+def split_row(scenes: list[tuple[SegmentGraph, np.ndarray, np.ndarray]], tau: float | None) -> dict:
+    """The measures at one τ (None: no cut) over ``scenes``: (segment graph, the cue per edge, GT instance per
+    segment)."""
     sizes, largest, kept_same, n_same, cut_diff, n_diff, mixed, n_comp = [], [], 0, 0, 0, 0, 0, 0
-    for n, edges, cue, inst in scenes:
+    for graph, cue, inst in scenes:
+        edges = np.asarray(graph.edges).reshape(-1, 2)
         keep = np.ones(len(edges), bool) if tau is None else cue >= tau
         same = (inst[edges[:, 0]] == inst[edges[:, 1]]) & (inst[edges[:, 0]] > 0)
         kept_same += int((keep & same).sum())
         n_same += int(same.sum())
         cut_diff += int((~keep & ~same).sum())
         n_diff += int((~same).sum())
-        comp = components(n, edges[keep])
-        counts = np.bincount(comp)
-        sizes += counts.tolist()
-        largest.append(int(counts.max()))
-        for c in range(len(counts)):
-            objs = set(inst[comp == c].tolist()) - {0}
-            mixed += len(objs) > 1
-        n_comp += len(counts)
+        comps = dataclasses.replace(graph, edges=edges[keep]).components()
+        sizes += [len(c) for c in comps]
+        largest.append(len(comps[0]))
+        mixed += sum(len(set(inst[c].tolist()) - {0}) > 1 for c in comps)
+        n_comp += len(comps)
     return {"tau": tau, "components": n_comp, "component_size": summary(sizes), "largest_per_scene": summary(largest),
             "same_object_edges_kept": kept_same / max(n_same, 1), "same_object_edges": n_same,
             "different_object_edges_cut": cut_diff / max(n_diff, 1), "different_object_edges": n_diff,
@@ -114,24 +105,25 @@ def main(argv: list[str] | None = None) -> int:
                   f"{s.graph.n_segments} segments (another over-segmentation's φ1?)", file=sys.stderr)
             return 2
         inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
-        edges = np.asarray(s.graph.edges).reshape(-1, 2)
-        cue = phi1_cosine(feats, edges) if args.cue == "phi1" else contact(s.recon.points_w, s.graph)
-        scenes.append((s.graph.n_segments, edges, cue, inst))
+        cue = (phi1_cosine(feats, np.asarray(s.graph.edges).reshape(-1, 2)) if args.cue == "phi1"
+               else contact(s.recon.points_w, s.graph))
+        scenes.append((s.graph, cue, inst))
     rows = [{"name": args.name, "cue": args.cue, "sets": args.set, "videos": videos, **split_row(scenes, t)}
             for t in (None, *(float(x) for x in args.taus.split(",")))]
     print(f"{args.name}: {len(scenes)} scenes")
     print("   tau  comps  largest/scene (median, max)  same-object edges kept  diff-object edges cut  mixed comps")
     for r in rows:
         t = "none" if r["tau"] is None else f"{r['tau']:g}"
-        print(f"{t:>6} {r['components']:>6}  {r['largest_per_scene']['median']:>10.0f} {r['largest_per_scene']['max']:>6.0f}"
+        big = r["largest_per_scene"]
+        print(f"{t:>6} {r['components']:>6}  {big['median']:>10.0f} {big['max']:>6.0f}"
               f"  {r['same_object_edges_kept']:>22.3f}  {r['different_object_edges_cut']:>21.3f}"
               f"  {r['components_with_several_objects']:>11.3f}")
     earlier = []
     if Path(args.json).is_file():
         earlier = [r for r in read_json(args.json).get("rows", [])
                    if (r.get("name"), r.get("cue", "phi1")) != (args.name, args.cue)]
-    save(args.json, "segment-graph edges cut below a φ1 cosine: pile components against lost same-object edges",
-         args.data, dataset, args.config, earlier + rows)
+    save(args.json, "segment-graph edges cut where a cue (φ1 cosine, shared boundary) is weak: pile components "
+         "against lost same-object edges", args.data, dataset, args.config, earlier + rows)
     return 0
 
 
