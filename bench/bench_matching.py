@@ -52,7 +52,7 @@ def run(n_scenes: int, cfg: MatchConfig, seed: int = 0) -> dict:
         "cpu_s_per_scene_pair": cpu / n_pairs,
         "solve_s_per_solved_pair": {"mean": float(solve.mean()) if len(solve) else 0.0,
                                     "max": float(solve.max()) if len(solve) else 0.0},
-        **match_stats(matches),
+        **match_stats(matches, cfg),
     }
 
 

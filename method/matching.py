@@ -94,10 +94,23 @@ class MatchResult:
     solve_s: float
     n_vars: int = 0  # x and y variables after the exact reduction (0 when prefiltered)
     milp_nodes: int = 0  # branch-and-bound nodes of the MILP solve it took part in (0: none)
+    # "time_limit" only: the MILP's lower bound on J at the limit (HiGHS's dual bound plus the constant); None
+    # where optimality is proven or no bound was reported
+    cost_bound: float | None = None
 
     @property
     def proven_optimal(self) -> bool:
         return self.status != "time_limit"
+
+    def limit_gap(self, n_src_nodes: int, n_src_edges: int, cfg: MatchConfig) -> float | None:
+        """Of the most the match could gain over the empty match (J_empty − bound), the share this match may
+        miss: (J − bound) / (J_empty − bound); 0 when proven optimal, None at a limit without a bound."""
+        if self.proven_optimal:
+            return 0.0
+        if self.cost_bound is None:
+            return None
+        room = empty_match_cost(n_src_nodes, n_src_edges, cfg) - self.cost_bound
+        return (self.cost - self.cost_bound) / room if room > 0 else 0.0
 
 
 @dataclass
@@ -368,10 +381,12 @@ def _stack(probs: Sequence[_Problem]):
 
 
 def _result(z: np.ndarray, p: _Problem, status: Status, share: float, cfg: MatchConfig,
-            milp_nodes: int = 0) -> MatchResult:
-    """MatchResult of the integral solution ``z`` of ``p``; ``share`` is its part of the stacked solves (s)."""
+            milp_nodes: int = 0, dual_bound: float | None = None) -> MatchResult:
+    """MatchResult of the integral solution ``z`` of ``p``; ``share`` is its part of the stacked solves (s);
+    ``dual_bound``: the MILP's lower bound on c·z when it stopped at a limit (``p`` solved alone)."""
     node_map, edge_map, cost = _decode(z, p, cfg)
-    return MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c), milp_nodes)
+    bound = None if dual_bound is None else empty_match_cost(len(p.C), len(p.e1), cfg) + dual_bound
+    return MatchResult(node_map, edge_map, cost, status, p.prep_s + share, len(p.c), milp_nodes, bound)
 
 
 def _solve_lp(probs: Sequence[_Problem], cfg: MatchConfig) -> tuple[list[np.ndarray | None], float]:
@@ -420,7 +435,10 @@ def _solve_milp(probs: Sequence[_Problem], cfg: MatchConfig, lp_share: float) ->
         raise RuntimeError(f"MILP failed: status {res.status} ({res.message})")
     x = np.round(res.x) if res.x is not None else np.zeros(len(c))
     share = lp_share + (time.perf_counter() - start) / len(probs)
-    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg, nodes) for n, p in enumerate(probs)]
+    # at a limit the blocks were re-solved one by one above, so the dual bound is this block's
+    dual = getattr(res, "mip_dual_bound", None) if status == "time_limit" else None
+    dual = None if dual is None or not np.isfinite(dual) else float(dual)
+    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg, nodes, dual) for n, p in enumerate(probs)]
 
 
 def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -604,11 +622,15 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
     return out
 
 
-def match_stats(matches: Sequence[PairMatch]) -> dict:
-    """Counts of solve outcomes and solver time over component pairs."""
+def match_stats(matches: Sequence[PairMatch], cfg: MatchConfig) -> dict:
+    """Counts of solve outcomes and solver time over component pairs, and the largest and median
+    :meth:`MatchResult.limit_gap` of the solves stopped at a limit (None where none stopped or none had a bound);
+    ``cfg``: the costs they were solved with."""
     status = [m.result.status for m in matches]
     n = len(matches)
     solved = n - status.count("prefiltered_empty")
+    gaps = [g for m in matches if not m.result.proven_optimal
+            for g in [m.result.limit_gap(m.n_src_nodes, m.n_src_edges, cfg)] if g is not None]
     return {
         "component_pairs": n,
         "prefiltered": status.count("prefiltered_empty"),
@@ -622,5 +644,7 @@ def match_stats(matches: Sequence[PairMatch]) -> dict:
         "nonempty": sum(bool(m.result.node_map) for m in matches),
         "solver_s": sum(m.result.solve_s for m in matches),
         "cpu_s": sum(m.cpu_s for m in matches),  # CPU seconds of the tasks, in whichever processes ran them
+        "limit_gap_max": max(gaps, default=None),
+        "limit_gap_median": float(np.median(gaps)) if gaps else None,
     }
 

@@ -272,7 +272,7 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         t0 = time.perf_counter()
         matches = match_all(graphs, cfg.match, executor, progress)
         seconds["matching_s"] = time.perf_counter() - t0
-        stats = match_stats(matches)
+        stats = match_stats(matches, cfg.match)
         if cfg.mode == "ours":
             t0 = time.perf_counter()
             decisions = prune_matches(matches, lambda s, seg: clouds[s][seg], pc, executor, progress)

@@ -158,10 +158,20 @@ def test_node_limit_stops_a_milp_the_same_way_on_any_machine():
     stopped = [match_costs(*inst, MatchConfig(node_limit=1, time_limit_s=600.0)) for _ in range(2)]
     assert all(r.status == "time_limit" and not r.proven_optimal for r in stopped)
     assert stopped[0].cost == stopped[1].cost > free.cost  # a feasible match, the same one each time, not optimal
+    # its bound brackets the optimum, and the gap says how much of the most a match can gain it may miss
+    cfg = MatchConfig(node_limit=1)
+    assert stopped[0].cost_bound <= free.cost + 1e-9 and free.cost_bound is None
+    gap = stopped[0].limit_gap(5, 10, cfg)
+    assert 0 < gap <= 1 and free.limit_gap(5, 10, cfg) == 0.0
+    assert gap == pytest.approx((stopped[0].cost - stopped[0].cost_bound)
+                                / (empty_match_cost(5, 10, cfg) - stopped[0].cost_bound))
+    stats = match_stats([PairMatch(0, 0, 1, 0, 5, 10, r) for r in (free, stopped[0])], cfg)
+    assert stats["limit_gap_max"] == stats["limit_gap_median"] == pytest.approx(gap)
     # HiGHS stops when its node count reaches the limit, so a solve of n nodes needs a limit of n + 1
     enough = match_costs(*inst, MatchConfig(node_limit=free.milp_nodes + 1))
     assert enough.status == "milp_optimal" and enough.cost == pytest.approx(free.cost)
-    assert match_stats([PairMatch(0, 0, 1, 0, 1, 0, r) for r in (free, enough)])["milp_nodes_max"] == free.milp_nodes
+    stats = match_stats([PairMatch(0, 0, 1, 0, 5, 10, r) for r in (free, enough)], MatchConfig())
+    assert stats["milp_nodes_max"] == free.milp_nodes and stats["limit_gap_max"] is None
 
 
 def unit(rng, n, d=16):
@@ -228,7 +238,7 @@ def test_match_all_every_component_pair_both_directions():
             assert m.result.node_map == {}
         for i, k in m.result.node_map.items():
             assert i in src.components[m.src_comp] and k in tgt.components[m.tgt_comp]
-    stats = match_stats(serial)
+    stats = match_stats(serial, MatchConfig())
     assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0 and stats["cpu_s"] > 0
     # a CPU budget it stays within changes nothing (its tasks then run in a budget-limited pool)
     budgeted = match_all(scenes, MatchConfig(workers=1, cpu_budget_s=600.0), progress=False)
