@@ -629,8 +629,8 @@ def match_stats(matches: Sequence[PairMatch], cfg: MatchConfig) -> dict:
     status = [m.result.status for m in matches]
     n = len(matches)
     solved = n - status.count("prefiltered_empty")
-    gaps = [g for m in matches if not m.result.proven_optimal
-            for g in [m.result.limit_gap(m.n_src_nodes, m.n_src_edges, cfg)] if g is not None]
+    gaps = [m.result.limit_gap(m.n_src_nodes, m.n_src_edges, cfg) for m in matches if not m.result.proven_optimal]
+    gaps = [g for g in gaps if g is not None]
     return {
         "component_pairs": n,
         "prefiltered": status.count("prefiltered_empty"),
