@@ -367,6 +367,74 @@ def _prepare(C: np.ndarray, edges1: np.ndarray, edges2: np.ndarray, cfg: MatchCo
     return p
 
 
+def _node_map_array(z: np.ndarray, p: _Problem) -> np.ndarray:
+    """The node map of an integral solution ``z`` of ``p`` as an n1 array of target nodes (−1: unmapped)."""
+    xi, xk = p.xs
+    on = z[:len(xi)] > 0.5
+    f = np.full(len(p.C), -1, dtype=np.int64)
+    f[xi[on]] = xk[on]
+    return f
+
+
+def _encode(f: np.ndarray, p: _Problem) -> np.ndarray:
+    """The integral solution z of ``p`` for the node map ``f`` (n1 targets, −1: unmapped; kept pairs only): x of
+    its pairs, and y of every source edge that ``f`` maps onto a target edge (each such y exists, see _build)."""
+    xi, xk = p.xs
+    ye, yt = p.ys
+    fi, fj = f[p.e1[ye, 0]], f[p.e1[ye, 1]]
+    k, l = p.e2[yt, 0], p.e2[yt, 1]
+    return np.concatenate([f[xi] == xk, ((fi == k) & (fj == l)) | ((fi == l) & (fj == k))]).astype(np.float64)
+
+
+def improve_match(z: np.ndarray, p: _Problem, cfg: MatchConfig, max_moves: int = 100_000) -> np.ndarray:
+    """Steepest-descent local search from the integral solution ``z`` of ``p``: an integral solution whose J is
+    at most ``z``'s, at which no single move lowers J.
+
+    Moves, over the pairs the reduction kept: map an unmapped source node i to a free target k; move a mapped i
+    to a free k; unmap i; give i the target k of another source node j, j taking i's target (or becoming
+    unmapped when i had none). With the gain of a map f, J_empty − J = Σ_{i mapped} (c_del_node − C[i, f(i)])
+    + c_del_edge·#{ij ∈ E1 mapped onto an edge of E2}, and L[i, k] = c_del_node − C[i, k] + c_del_edge·#{j ∈
+    N1(i) mapped into N2(k)} (i's own terms with i at k, the others fixed), a move's change of the gain is
+    L[i, k] − L[i, f(i)] for a free k (0 for "unmapped"), and for k = f(j) held by j
+    L[i, k] − L[i, f(i)] + L[j, f(i)] − L[j, k] + 2·c_del_edge·[ij ∈ E1 and f(i)k ∈ E2]: the edge ij is
+    counted in both L[i, f(i)] and L[j, k] before the exchange and in neither L[i, k] nor L[j, f(i)] after it,
+    while it is mapped after the exchange exactly when it was before. The best move is made while it gains more than 1e-12.
+    """
+    n1, n2 = p.C.shape
+    keep = np.zeros((n1, n2), dtype=bool)
+    keep[p.xs] = True
+    A1, A2 = _adjacency(p.e1, n1), _adjacency(p.e2, n2)
+    A2x = np.vstack([A2, np.zeros((1, n2))])  # row n2: "unmapped", adjacent to nothing
+    P = np.where(keep, cfg.c_del_node - p.C, -np.inf)
+    f = _node_map_array(z, p)
+    rows = np.arange(n1)
+    for _ in range(max_moves):
+        mapped = f >= 0
+        F = np.zeros((n1, n2))
+        F[rows[mapped], f[mapped]] = 1.0
+        L = np.zeros((n1, n2 + 1))  # column n2: unmapped
+        L[:, :n2] = P + cfg.c_del_edge * (A1 @ F @ A2)
+        fi = np.where(mapped, f, n2)
+        cur = L[rows, fi]
+        holder = np.full(n2, -1, dtype=np.int64)
+        holder[f[mapped]] = rows[mapped]
+        j = np.maximum(holder, 0)[None, :]
+        swap = L[j, fi[:, None]] - cur[j] + 2 * cfg.c_del_edge * A1[rows[:, None], j] * A2x[fi][:, :n2]
+        delta = L[:, :n2] - cur[:, None] + np.where(holder[None, :] >= 0, swap, 0.0)
+        delta[holder[None, :] == rows[:, None]] = -np.inf  # k is i's own target
+        unmap = np.where(mapped, -cur, -np.inf)
+        i, k = np.unravel_index(int(np.argmax(delta)), delta.shape)
+        if max(delta[i, k], unmap.max()) <= 1e-12:
+            break
+        if unmap.max() > delta[i, k]:
+            f[int(np.argmax(unmap))] = -1
+        else:
+            if holder[k] >= 0:
+                f[holder[k]] = f[i]
+            f[i] = k
+    return _encode(f, p)
+
+
 def _stack(probs: Sequence[_Problem]):
     """Block-diagonal (c, A, b) of ``probs``, with the variable and row offsets of the blocks."""
     off = np.cumsum([0] + [len(p.c) for p in probs])

@@ -288,3 +288,45 @@ def test_a_segment_no_frame_saw_is_matched_to_nothing():
     assert (d[2] == 2.0).all() and np.allclose(np.delete(d, 2, axis=0), np.delete(cosine_distance(f, f), 2, axis=0))
     r = match_graphs(blind, edges, f, edges, MatchConfig())
     assert 2 not in r.node_map and r.node_map == {0: 0, 1: 1, 3: 3}
+
+
+def _j_of(f: np.ndarray, C, e1, e2, cfg) -> float:
+    """J of the node map f (−1: unmapped) with every source edge mapped whose image is a target edge."""
+    E2 = {tuple(sorted(e)) for e in e2.tolist()}
+    mapped = sum(f[i] >= 0 and f[j] >= 0 and tuple(sorted((f[i], f[j]))) in E2 for i, j in e1.tolist())
+    return (empty_match_cost(len(C), len(e1), cfg) + sum(C[i, f[i]] - cfg.c_del_node for i in np.nonzero(f >= 0)[0])
+            - cfg.c_del_edge * mapped)
+
+
+def test_local_search_ends_where_no_single_move_helps():
+    """From the empty match and from a random map: a feasible solution of the BLP, no worse than where it started,
+    whose J is its node map's, and which no single move (map, move, unmap, exchange two targets) improves."""
+    rng = np.random.default_rng(11)
+    cfg = MatchConfig(prefilter=False)
+    n_moved = 0
+    for _ in range(12):
+        C, e1, e2 = random_instance(rng, int(rng.integers(3, 7)), int(rng.integers(3, 8)))
+        n1, n2 = C.shape
+        p = matching._prepare(C, e1, e2, cfg)
+        start = np.full(n1, -1)
+        take = rng.permutation(n2)[:min(n1, n2)]
+        start[:len(take)] = np.where(rng.random(len(take)) < 0.6, take, -1)
+        for f0 in (np.full(n1, -1), start):
+            z0 = matching._encode(f0, p)
+            z = matching.improve_match(z0, p, cfg)
+            c, (rows, cols, vals), b = p.c, p.A, p.b
+            assert np.all(np.bincount(rows, weights=vals * z[cols], minlength=len(b)) <= b + 1e-9)
+            node_map, _, j = matching._decode(z, p, cfg)
+            f = np.full(n1, -1)
+            f[list(node_map)] = list(node_map.values())
+            assert j == pytest.approx(_j_of(f, C, e1, e2, cfg)) and j <= _j_of(f0, C, e1, e2, cfg) + 1e-9
+            assert j >= brute_force(C, e1, e2, cfg) - 1e-9
+            n_moved += not np.array_equal(f, f0)
+            for i in range(n1):
+                for k in [-1, *range(n2)]:
+                    g = f.copy()
+                    if k >= 0 and k in f:
+                        g[int(np.nonzero(f == k)[0][0])] = f[i]
+                    g[i] = k
+                    assert _j_of(g, C, e1, e2, cfg) >= j - 1e-9, (f, g)
+    assert n_moved >= 12  # the search moved from most starts
