@@ -1,17 +1,18 @@
 """Diagnostic, not a test: on the component pairs whose MILP stops at the node limit (cluttered piles), how far
-is the limit's incumbent from optimal, and does local search from it (``matching.improve_match``) close the gap?
+from optimal is the match matching returns there (HiGHS's incumbent, improved by ``matching.improve_match``)?
 
     .venv/bin/python experiments/bench_matching_polish.py --data DIR --config configs/ours-cluttered.yaml
         [--set k=v ...] --results OUT --features PHI1_FEATURES_DIR --name NAME [--node-limit 12]
-        [--long-node-limit 2000 --long-time-limit-s 120] [--max-pairs N] [--dump DIR] [--json experiments/results/matching_polish.json]
+        [--long-node-limit 2000 --long-time-limit-s 120] [--max-pairs N] [--dump DIR]
+        [--json experiments/results/matching_polish.json]
 
 OUT is a results folder whose stage cache holds the videos' over-segmentation for the config (computed into it
 otherwise); PHI1_FEATURES_DIR holds φ1's feature per segment (``<video>.npy``) of one fold's training videos, the
 videos matched (as ``ours`` does: every component of every scene into every component of every other, both
 directions). Ground truth is not read. Each instance goes through matching's pre-filter and LP; the non-integral
 ones are solved alone as a MILP at ``--node-limit``, and for each stopped at the limit the row holds: J_empty,
-HiGHS's lower bound, the incumbent's J, J after local search from the incumbent and from the empty match, and
-the MILP's J and bound with the long limits (``--long-node-limit 0``: not run). The gap of a J is
+HiGHS's lower bound, the returned match's J, and the MILP's J, bound and node count with the long limits
+(``--long-node-limit 0``: not run). The gap of a J is
 (J − bound) / (J_empty − bound), the bound being the best of the two MILPs'.
 """
 from __future__ import annotations
@@ -29,8 +30,8 @@ from common import save
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.table2 import segment_scenes
-from selfseg.method.matching import (_Problem, _component_edges, _decode, _encode, _prepare, _solve_lp, _solve_milp,
-                                     cosine_distance, empty_match_cost, improve_match)
+from selfseg.method.matching import (_Problem, _component_edges, _prepare, _solve_lp, _solve_milp, cosine_distance,
+                                     empty_match_cost)
 from selfseg.method.pipeline import OursConfig
 
 
@@ -99,24 +100,15 @@ def main(argv: list[str] | None = None) -> int:
         if r.proven_optimal:
             continue
         j_empty = empty_match_cost(len(q.C), len(q.e1), cfg)
-        f = np.full(len(q.C), -1, dtype=np.int64)
-        f[list(r.node_map)] = list(r.node_map.values())
-        z = _encode(f, q)
-        assert abs(_decode(z, q, cfg)[2] - r.cost) < 1e-9, name
-        t0 = time.process_time()
-        j_inc = _decode(improve_match(z, q, cfg), q, cfg)[2]
-        ls_s = time.process_time() - t0
-        j_from_empty = _decode(improve_match(np.zeros(len(q.c)), q, cfg), q, cfg)[2]
         row = {"pair": name, "n1": int(q.C.shape[0]), "n2": int(q.C.shape[1]), "vars": len(q.c), "j_empty": j_empty,
-               "bound": r.cost_bound, "j_milp": r.cost, "j_local_search": j_inc, "j_local_search_from_empty":
-               j_from_empty, "milp_cpu_s": milp_s, "local_search_cpu_s": ls_s}
+               "bound": r.cost_bound, "j_milp": r.cost, "milp_cpu_s": milp_s}
         if args.long_node_limit:
             t0 = time.process_time()
             r2 = _solve_milp([q], long_cfg, 0.0)[0]
             row.update(j_long_milp=r2.cost, long_bound=r2.cost_bound if not r2.proven_optimal else r2.cost,
                        long_status=r2.status, long_nodes=r2.milp_nodes, long_cpu_s=time.process_time() - t0)
         bound = max(b for b in (row["bound"], row.get("long_bound")) if b is not None)
-        for key in ("j_milp", "j_local_search", "j_local_search_from_empty", "j_long_milp"):
+        for key in ("j_milp", "j_long_milp"):
             if key in row:
                 row[key.replace("j_", "gap_")] = (row[key] - bound) / (j_empty - bound) if j_empty > bound else 0.0
         rows.append(row)
@@ -124,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         if len(rows) == args.max_pairs:
             break
     summary = {k: {"median": float(np.median([r[k] for r in rows])), "max": float(np.max([r[k] for r in rows]))}
-               for k in ("gap_milp", "gap_local_search", "gap_local_search_from_empty", "gap_long_milp")
+               for k in ("gap_milp", "gap_long_milp")
                if rows and k in rows[0]}
     print(summary)
     save(args.json, "the node limit's incumbents against local search from them and a long MILP, on the pairs "

@@ -104,13 +104,13 @@ class MatchResult:
 
     def limit_gap(self, n_src_nodes: int, n_src_edges: int, cfg: MatchConfig) -> float | None:
         """Of the most the match could gain over the empty match (J_empty − bound), the share this match may
-        miss: (J − bound) / (J_empty − bound); 0 when proven optimal, None at a limit without a bound."""
+        miss: (J − bound) / (J_empty − bound), at least 0; 0 when proven optimal, None at a limit without a bound."""
         if self.proven_optimal:
             return 0.0
         if self.cost_bound is None:
             return None
         room = empty_match_cost(n_src_nodes, n_src_edges, cfg) - self.cost_bound
-        return (self.cost - self.cost_bound) / room if room > 0 else 0.0
+        return max(0.0, (self.cost - self.cost_bound) / room) if room > 0 else 0.0  # ≥ 0 but for rounding
 
 
 @dataclass
@@ -506,7 +506,10 @@ def _solve_milp(probs: Sequence[_Problem], cfg: MatchConfig, lp_share: float) ->
     # at a limit the blocks were re-solved one by one above, so the dual bound is this block's
     dual = getattr(res, "mip_dual_bound", None) if status == "time_limit" else None
     dual = None if dual is None or not np.isfinite(dual) else float(dual)
-    return [_result(x[off[n]:off[n + 1]], p, status, share, cfg, nodes, dual) for n, p in enumerate(probs)]
+    blocks = [x[off[n]:off[n + 1]] for n in range(len(probs))]
+    if status == "time_limit":  # the incumbent (the empty match if none), improved by local search
+        blocks = [improve_match(z, p, cfg) for z, p in zip(blocks, probs)]
+    return [_result(z, p, status, share, cfg, nodes, dual) for z, p in zip(blocks, probs)]
 
 
 def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -521,7 +524,8 @@ def match_batch(problems: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     feasible for the BLP is optimal for it. The non-integral blocks are stacked into one MILP
     (``milp``, HiGHS, ``cfg.time_limit_s`` and ``cfg.node_limit``); at a proven optimum of a separable problem every
     block is optimal ("milp_optimal", within ``cfg.mip_rel_gap`` of the stacked objective). If the MILP stops at a limit its blocks get
-    status "time_limit" with the best solution found (the empty match if there is none); a
+    status "time_limit" with the best solution found (the empty match if there is none), improved by
+    :func:`improve_match`; a
     stacked MILP that hits a limit is re-solved block by block, so that only the hard blocks
     are reported as "time_limit". Stacking turns hundreds of tiny solves into two, which
     removes HiGHS's per-call overhead (tens of ms for a MILP).
