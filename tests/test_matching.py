@@ -335,3 +335,17 @@ def test_local_search_ends_where_no_single_move_helps():
                     g[i] = k
                     assert _j_of(g, C, e1, e2, cfg) >= j - 1e-9, (f, g)
     assert n_moved >= 12  # the search moved from most starts
+
+
+def test_a_stack_past_its_node_limit_is_solved_block_by_block():
+    """Two clique pairs whose MILPs need branching: stacked under a 1-node stack limit they are re-solved one by one,
+    each to its optimum with its own node count; with room the stack solves them together."""
+    inst = (np.full((5, 6), 0.05), np.array(list(itertools.combinations(range(5), 2))),
+            np.array(list(itertools.combinations(range(6), 2))))
+    alone = match_costs(*inst, MatchConfig())
+    split = match_batch([inst, inst], MatchConfig(stack_node_limit=1))
+    together = match_batch([inst, inst], MatchConfig(stack_node_limit=1000))
+    for r in (*split, *together):
+        assert r.status == "milp_optimal" and r.cost == pytest.approx(alone.cost)
+    assert [r.milp_nodes for r in split] == [alone.milp_nodes] * 2
+    assert together[0].milp_nodes == together[1].milp_nodes > alone.milp_nodes  # one search over both blocks
