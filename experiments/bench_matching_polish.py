@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import save
+from common import phi1_features, save
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -65,21 +65,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config, args.set)
-    videos = sorted(f.stem for f in Path(args.features).glob("*.npy"))
-    if not videos:
-        print(f"bench_matching_polish: {args.features}: no <video>.npy feature files", file=sys.stderr)
-        return 2
     seg = segment_scenes(dataset, config, Path(args.results), ("lccp+symseg",))
-    graphs = []
-    for s in seg.scenes:
-        if s.video_id in videos:
-            feats = np.load(Path(args.features) / f"{s.video_id}.npy")
-            if len(feats) != s.graph.n_segments:
-                print(f"bench_matching_polish: {args.features}/{s.video_id}.npy: {len(feats)} features for "
-                      f"{s.graph.n_segments} segments", file=sys.stderr)
-                return 2
-            graphs.append((s.video_id, feats, np.asarray(s.graph.edges, np.int64).reshape(-1, 2),
-                           [np.asarray(c, np.int64) for c in s.graph.components()]))
+    feats = phi1_features("bench_matching_polish", args.features, seg.scenes)
+    if feats is None:
+        return 2
+    videos = sorted(feats)
+    graphs = [(s.video_id, feats[s.video_id], np.asarray(s.graph.edges, np.int64).reshape(-1, 2),
+               [np.asarray(c, np.int64) for c in s.graph.components()]) for s in seg.scenes if s.video_id in feats]
     cfg = dataclasses.replace(config.pseudo.match, node_limit=args.node_limit, time_limit_s=600.0)
     long_cfg = dataclasses.replace(cfg, node_limit=args.long_node_limit, time_limit_s=args.long_time_limit_s)
     probs = [(name, _prepare(C, e1, e2, cfg)) for name, C, e1, e2 in instances(graphs)]

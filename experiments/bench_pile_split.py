@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import save
+from common import phi1_features, save
 
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
@@ -89,21 +89,17 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     dataset = Dataset(args.data)
     config = load_config(OursConfig, args.config, args.set)
-    videos = sorted(f.stem for f in Path(args.features).glob("*.npy"))
-    if not videos:
-        print(f"bench_pile_split: {args.features}: no <video>.npy feature files", file=sys.stderr)
-        return 2
     seg, _, gt_inst = labeled_scenes(dataset, config, Path(args.results), ("lccp+symseg",), None, GT_MAX_DIST_M,
                                      None, gt_labels=True)
+    features = phi1_features("bench_pile_split", args.features, seg.scenes)
+    if features is None:
+        return 2
+    videos = sorted(features)
     scenes = []
     for s in seg.scenes:
-        if s.video_id not in videos:
+        if s.video_id not in features:
             continue
-        feats = np.load(Path(args.features) / f"{s.video_id}.npy")
-        if len(feats) != s.graph.n_segments:
-            print(f"bench_pile_split: {args.features}/{s.video_id}.npy: {len(feats)} features for "
-                  f"{s.graph.n_segments} segments (another over-segmentation's φ1?)", file=sys.stderr)
-            return 2
+        feats = features[s.video_id]
         inst = segment_instances(s.graph.labels, gt_inst[s.video_id], s.graph.n_segments)
         cue = (phi1_cosine(feats, np.asarray(s.graph.edges).reshape(-1, 2)) if args.cue == "phi1"
                else contact(s.recon.points_w, s.graph))

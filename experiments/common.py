@@ -150,6 +150,25 @@ def fold_bench_inputs(bench: str, args: argparse.Namespace):
     return dataset, config, seg, aligned, gt_inst, folds
 
 
+def phi1_features(bench: str, features: str, scenes) -> dict[str, np.ndarray] | None:
+    """φ1's feature per segment of each of ``scenes`` (segmentations with ``video_id`` and ``graph``) that has a
+    ``<video>.npy`` in the folder ``features`` (one fold's training videos); None, after one line on stderr, when
+    the folder has none or a file's rows do not match its video's segments (another over-segmentation's φ1)."""
+    out = {}
+    for s in scenes:
+        f = Path(features) / f"{s.video_id}.npy"
+        if f.is_file():
+            out[s.video_id] = np.load(f)
+            if len(out[s.video_id]) != s.graph.n_segments:
+                print(f"{bench}: {f}: {len(out[s.video_id])} features for {s.graph.n_segments} segments (another "
+                      "over-segmentation's φ1?)", file=sys.stderr)
+                return None
+    if not out:
+        print(f"{bench}: {features}: no <video>.npy feature file of this dataset's videos", file=sys.stderr)
+        return None
+    return out
+
+
 def save(path: str, what: str, data: str, dataset: Dataset, config: str, rows: list[dict]) -> None:
     """Write the bench's rows with the dataset and config they were measured on."""
     write_json(path, {"what": what, "data": str(Path(data).resolve()), "dataset_hash": dataset.content_hash(),
