@@ -108,7 +108,8 @@ class MatchResult:
 
     def limit_gap(self, n_src_nodes: int, n_src_edges: int, cfg: MatchConfig) -> float | None:
         """Of the most the match could gain over the empty match (J_empty − bound), the share this match may
-        miss: (J − bound) / (J_empty − bound), at least 0; 0 when proven optimal, None at a limit without a bound."""
+        miss: (J − bound) / (J_empty − bound), at least 0; 0 when proven optimal, None at a limit without a
+        bound."""
         if self.proven_optimal:
             return 0.0
         if self.cost_bound is None:
@@ -402,7 +403,8 @@ def improve_match(z: np.ndarray, p: _Problem, cfg: MatchConfig, max_moves: int =
     L[i, k] − L[i, f(i)] for a free k (0 for "unmapped"), and for k = f(j) held by j
     L[i, k] − L[i, f(i)] + L[j, f(i)] − L[j, k] + 2·c_del_edge·[ij ∈ E1 and f(i)k ∈ E2]: the edge ij is
     counted in both L[i, f(i)] and L[j, k] before the exchange and in neither L[i, k] nor L[j, f(i)] after it,
-    while it is mapped after the exchange exactly when it was before. The best move is made while it gains more than 1e-12.
+    while it is mapped after the exchange exactly when it was before. The best move is made while it gains more
+    than 1e-12.
     """
     n1, n2 = p.C.shape
     keep = np.zeros((n1, n2), dtype=bool)
