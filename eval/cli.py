@@ -11,7 +11,9 @@ under the paper's protocol; ``evaluate3d``: Table II (:mod:`selfseg.eval.table2`
 Writes results under ``--out`` (layout in :mod:`selfseg.eval.layout`) and prints a table. The method's code
 runs only in its own sandboxed process (:mod:`selfseg.eval.sandbox`), never in this one.
 Errors in the inputs (unknown method, missing dataset, bad config or predictions) print one
-message naming the file or option and exit with status 2.
+message naming the file or option and exit with status 2. A fold whose method passes a compute budget its config
+declares (e.g. ``ours``'s matching CPU) is recorded as failed (``failed/…``, not scored, not run again), the other
+folds still run, and the exit status is 3 (``evaluate3d``: the same for its ``ours-matching`` row).
 """
 from __future__ import annotations
 
@@ -26,14 +28,15 @@ from selfseg.config import ConfigError
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.folds import EvalOptions
-from selfseg.eval.layout import N_FOLDS, RUN_SCORES_DIR, results_key
-from selfseg.eval.protocol import run_fold
-from selfseg.eval.resume import finished_fold, retire_run, run_conflict
+from selfseg.eval.layout import FAILED_JSON, N_FOLDS, RUN_SCORES_DIR, results_key
+from selfseg.eval.protocol import EXIT_OVER_BUDGET, run_fold
+from selfseg.eval.resume import failed_fold, finished_fold, retire_run, run_conflict
 from selfseg.eval.sandbox import MethodRef, SandboxError, describe_method, sandbox_unavailable
 from selfseg.eval.scoring import MethodOutputError
 from selfseg.executor import ExecutorConfig, ExecutorError, add_executor_arguments, executor_config, shared_executor
 from selfseg.fileio import BusyError, FileFormatError
 from selfseg.guard import GroundTruthAccessError
+from selfseg.method_api import BudgetExceededError
 from selfseg.registry import UnknownMethodError, get_method_class, method_names
 
 TABLE_KEYS = ("P", "R", "IoU", "overlap_F", "boundary_F", "F75")
@@ -118,15 +121,19 @@ def run_folds_as_tasks(where: ExecutorConfig, ref: MethodRef, config: dict, data
     """Run ``folds`` as tasks of the executor ``where`` names (e.g. Ray: one task per fold, reserving
     ``ray_cpus_per_task`` CPUs). A task is what :func:`run_fold` does here: the method in its own sandboxed
     process (no network, so it cannot reach the cluster), then scoring and the result files, written to
-    ``out`` (which every node must see). Returns {fold: record}; Ctrl-C cancels the tasks."""
+    ``out`` (which every node must see). Returns {fold: record, or the BudgetExceededError of a fold that passed
+    its budget}; Ctrl-C cancels the tasks."""
     ex = shared_executor(where, out)
     try:
         futures = {ex.submit(run_fold, ref, config, dataset, k, out, options, False): k for k in folds}
         records = {}
         for f in cf.as_completed(futures):
-            records[futures[f]] = f.result()
+            try:
+                records[futures[f]] = f.result()
+            except BudgetExceededError as e:
+                records[futures[f]] = e
             if not quiet:
-                print(f"fold {futures[f]}: finished ({len(records)}/{len(folds)})", file=sys.stderr)
+                print(f"fold {futures[f]}: ended ({len(records)}/{len(folds)})", file=sys.stderr)
     except BaseException:
         ex.shutdown(wait=False, cancel_futures=True)
         raise
@@ -168,22 +175,36 @@ def run(args: argparse.Namespace) -> int:
     if conflict is not None and not args.replace:
         raise ConfigError(f"{conflict}; name this one with --name, or give --replace to replace that run")
     replaced = retire_run(args.out, dataset, options.name or ref.name) if conflict is not None else None
-    records = {}
+    records: dict[int, dict | Path | BudgetExceededError | None] = {}
     for k in options.folds:  # a fold finished by an earlier run with the same keys is reused (resume)
         records[k] = finished_fold(ref, config, dataset, k, args.out, options)
         if records[k] is not None and not args.quiet:
             print(f"fold {k}: reusing the finished result of an identical run", file=sys.stderr)
+        elif records[k] is None:  # one that failed under its budget is not run again: it would fail again
+            records[k] = failed_fold(ref, config, dataset, k, args.out, options)
     todo = [k for k in options.folds if records[k] is None]
     if where.distributed and todo:
         records.update(run_folds_as_tasks(where, ref, config, dataset, todo, args.out, options, args.quiet))
-    else:  # plain local runs: one fold after the other, from this process
-        records.update({k: run_fold(ref, config, dataset, k, args.out, options, progress=not args.quiet) for k in todo})
+    else:  # plain local runs: one fold after the other, from this process; a fold over its budget ends alone
+        for k in todo:
+            try:
+                records[k] = run_fold(ref, config, dataset, k, args.out, options, progress=not args.quiet)
+            except BudgetExceededError as e:
+                records[k] = e
     if replaced is not None:
         shutil.rmtree(replaced, ignore_errors=True)
-    print(format_table(options.name or ref.name, [records[k] for k in options.folds]))
-    print("results: " + str(args.out / RUN_SCORES_DIR.format(dataset=results_key(args.out, dataset),
-                                                               name=options.name or ref.name)))
-    return 0
+    name = options.name or ref.name
+    done = [r for r in records.values() if isinstance(r, dict)]
+    if done:
+        print(format_table(name, done))
+    print("results: " + str(args.out / RUN_SCORES_DIR.format(dataset=results_key(args.out, dataset), name=name)))
+    failed = {k: r for k, r in records.items() if not isinstance(r, dict)}
+    for k, r in failed.items():
+        path = args.out / FAILED_JSON.format(dataset=results_key(args.out, dataset), name=name, fold=k)
+        why = f"{r}" if isinstance(r, BudgetExceededError) else "in an earlier identical run; not run again"
+        print(f"evaluate: fold {k} of {name!r} failed under its budget: {why} (recorded in {path}; delete that "
+              "file to run the fold again)", file=sys.stderr)
+    return EXIT_OVER_BUDGET if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:

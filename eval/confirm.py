@@ -24,6 +24,11 @@ section of the preset's leaderboard. ``check`` refuses a checkout whose code or 
 ``leaderboards/``, ``docs/`` and ``README.md`` may move on), and ``board`` refuses any result record that
 ran from such a commit or from a dirty tree.
 
+**Budgets.** A fold whose method passed a compute budget its frozen config declares (``ours``'s matching CPU) has a
+failure record instead of scores (:func:`selfseg.eval.protocol.record_failure`) and is never rerun. The board shows
+the run as failed on that seed, pools it over the other seeds, and tests a claim on the seeds where both sides ran
+every fold: with fewer than :data:`MIN_CLAIM_SEEDS` the claim is "not tested". A Table II row may fail the same way.
+
 **Board.** Per-seed columns (development seeds marked, never pooled), the fresh seeds pooled over every test
 frame, and paired differences ``ours`` − each baseline and ablation (V2's, where ``ours`` did not run:
 :data:`CLAIMANTS`) with bootstrap 95 % CIs over the pooled test videos (:mod:`selfseg.eval.pooled`); a claim
@@ -47,7 +52,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from selfseg.eval.aggregate import fmt
-from selfseg.eval.leaderboard import load_results, replace_generated
+from selfseg.eval.leaderboard import load_failures, load_results, replace_generated
 from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
 from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
 
@@ -71,6 +76,10 @@ TABLE2_ROWS = ("lccp", "lccp+symseg", "ours-matching", "gt-merging")
 # Whose claims the board tests: ``ours``, or where it did not run (a preset whose matching does not terminate,
 # e.g. ``cluttered``) V2, the self-supervised pipeline without matching; fixed here, never chosen after the seeds.
 CLAIMANTS = ("ours", "ours-v2")
+# A run that failed under its budget on a seed (a fold of it: ``failed/`` records) is shown failed on that seed and left
+# out of the pooling there; a claim is then tested on the seeds where both sides ran every fold, and not at all when
+# fewer than this many such seeds remain (fixed before any freeze whose runs have budgets).
+MIN_CLAIM_SEEDS = 2
 
 
 class FreezeError(ValueError):
@@ -186,16 +195,31 @@ def _check_records(rec: dict, seed: int, groups: dict) -> None:
 
 
 def _only_dataset(results: Path) -> dict:
+    return _outcomes(results)[0]
+
+
+def _outcomes(results: Path) -> tuple[dict, dict]:
+    """(:func:`load_results` groups, :func:`load_failures` groups) of the one dataset in ``results``."""
     found = load_results(results)
     if len(found) != 1:
         raise FileFormatError(f"{results}: expected the results of one dataset, found {sorted(found) or 'none'}")
-    return next(iter(found.values()))
+    key, groups = next(iter(found.items()))
+    failures = load_failures(results)
+    if set(failures) - {key}:
+        raise FileFormatError(f"{results}: failure records of another dataset ({', '.join(sorted(set(failures) - {key}))})")
+    return groups, failures.get(key, {})
 
 
-def _split(label: str, development: bool, groups: dict) -> tuple[Seed, dict]:
-    """One seed's results (:func:`load_results` groups of one dataset) as its 2-D :class:`Seed` and its 3-D runs."""
-    return (Seed(label, development, {n: r for (t, n), r in groups.items() if t == "2d"}),
-            {n: r for (t, n), r in groups.items() if t == "3d"})
+def _split(label: str, development: bool, groups: dict, failures: dict | None = None) -> tuple[Seed, dict]:
+    """One seed's results (:func:`load_results` groups of one dataset) and failures (:func:`load_failures` groups)
+    as its 2-D :class:`Seed` (a run with a failed fold is in ``failed``, not ``runs``) and its 3-D runs (a failed
+    row: its failure records)."""
+    failures = failures or {}
+    failed = {n: [r["fold"] for r in recs] for (t, n), recs in failures.items() if t == "2d"}
+    three_d = {n: r for (t, n), r in groups.items() if t == "3d"}
+    three_d.update({n: r for (t, n), r in failures.items() if t == "3d"})
+    return (Seed(label, development, {n: r for (t, n), r in groups.items() if t == "2d" and n not in failed}, failed),
+            three_d)
 
 
 def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
@@ -205,9 +229,10 @@ def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
         results = runs / SEED_RESULTS_DIR.format(seed=s)
         if not results.is_dir():
             continue
-        groups = _only_dataset(results)
+        groups, failures = _outcomes(results)
         _check_records(rec, s, groups)
-        seed, three_d[seed.label] = _split(f"seed {s}", False, groups)
+        _check_records(rec, s, failures)
+        seed, three_d[seed.label] = _split(f"seed {s}", False, groups, failures)
         fresh.append(seed)
     return fresh, three_d
 
@@ -227,6 +252,48 @@ def _cell(videos: dict) -> str:
         return "—"
     s = score(videos)
     return f"{fmt(s['mean'])} ({fmt(s['ci95'][0])}–{fmt(s['ci95'][1])})"
+
+
+def _seed_cell(seed: Seed, name: str) -> str:
+    """Run ``name`` on one seed: its score, or which folds failed under their budget."""
+    if name in seed.failed:
+        return f"failed: over budget (fold {', '.join(map(str, seed.failed[name]))})"
+    return _cell(pooled_videos([seed], name))
+
+
+def _pooled_cell(seeds: list[Seed], name: str) -> str:
+    """Run ``name`` pooled over ``seeds``, saying how many seeds it holds when it failed on some."""
+    cell = _cell(pooled_videos(seeds, name))
+    lost = [s for s in seeds if name in s.failed]
+    return f"{cell}, {len(seeds) - len(lost)} of {len(seeds)} seeds" if lost else cell
+
+
+def _t2_cell(recs: list[dict] | None) -> str:
+    """A Table II row on one seed: its IoU, "failed: over budget", or "—" (not run)."""
+    if not recs:
+        return "—"
+    return "failed: over budget" if "failure" in recs[0] else fmt(recs[0]["metrics"]["IoU"])
+
+
+def _attempted(seeds: list[Seed], name: str) -> bool:
+    """``name`` ran, or failed under its budget, on one of ``seeds``."""
+    return any(name in s.runs or name in s.failed for s in seeds)
+
+
+def claim_row(a: str, b: str, seeds: list[Seed]) -> str:
+    """The table row of claim ``a`` − ``b`` over the pooled ``seeds`` (their common test videos); where either
+    failed under its budget on a seed, over the seeds where both ran, or "not tested" when fewer than
+    :data:`MIN_CLAIM_SEEDS` remain."""
+    lost = [s.label for s in seeds if a in s.failed or b in s.failed]
+    both = [s for s in seeds if a in s.runs and b in s.runs]
+    if lost and len(both) < MIN_CLAIM_SEEDS:
+        who = " and ".join(n for n in (a, b) if any(n in s.failed for s in seeds))
+        return (f"| {a} − {b} | — | — | — | **not tested**: {who} failed under its budget on {', '.join(lost)}, "
+                f"{len(both)} seed{'s' * (len(both) != 1)} left (needs {MIN_CLAIM_SEEDS}) |")
+    d = paired(pooled_videos(seeds, a), pooled_videos(seeds, b))
+    where = f" ({len(both)} of {len(seeds)} seeds: a failure on {', '.join(lost)})" if lost else ""
+    return (f"| {a} − {b} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
+            f"{d['wins']} of {d['n_videos']}{where} | **{d['verdict']}** |")
 
 
 def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed], noisy_3d: dict) -> list[str]:
@@ -249,15 +316,15 @@ def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed
         lines.append(f"| {n} | {fmt(frame_mean({v: a[v] for v in common}))} | {fmt(frame_mean({v: b[v] for v in common}))} "
                      f"| {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | {d['wins']} of {d['n_videos']} "
                      f"| {verdict} |")
+    failed = [f"{n} on {s.label} (fold {', '.join(map(str, folds))})" for s in noisy for n, folds in s.failed.items()]
+    if failed:
+        lines += ["", f"Failed under their budget with noisy depth (left out of the drops there): {'; '.join(failed)}."]
     a = claimant(noisy)
-    mine = pooled_videos(noisy, a) if a else {}
-    claims = [(o, paired(mine, pooled_videos(noisy, o))) for o in (*BASELINES, *ABLATIONS)
-              if mine and o != a and pooled_videos(noisy, o)]
-    if claims:
+    others = [o for o in (*BASELINES, *ABLATIONS) if a and o != a and _attempted(noisy, o)]
+    if others:
         lines += ["", f"`{a}`'s claims with noisy depth (same protocol):", "",
                   "| claim | mean | 95 % CI | videos A > B | verdict |", "|---|---|---|---|---|"]
-        lines += [f"| {a} − {o} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
-                  f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |" for o, d in claims]
+        lines += [claim_row(a, o, noisy) for o in others]
     t2 = [n for n in TABLE2_ROWS if any(n in noisy_3d.get(s.label, {}) for s in noisy)]
     if t2:
         lines += ["", "Table II IoU, exact → noisy depth, per seed:", "",
@@ -265,15 +332,16 @@ def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed
         for n in t2:
             cells = []
             for s in noisy:
-                e, q = three_d.get(s.label, {}).get(n), noisy_3d.get(s.label, {}).get(n)
-                cells.append(f"{fmt(e[0]['metrics']['IoU']) if e else '—'} → {fmt(q[0]['metrics']['IoU']) if q else '—'}")
+                e, q = (_t2_cell(d.get(s.label, {}).get(n)) for d in (three_d, noisy_3d))
+                cells.append(f"{e} → {q}")
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
     return lines
 
 
 def claimant(fresh: list[Seed]) -> str | None:
-    """The first of :data:`CLAIMANTS` with results in the fresh seeds (None: neither ran)."""
-    return next((n for n in CLAIMANTS if pooled_videos(fresh, n)), None)
+    """The first of :data:`CLAIMANTS` that ran in the fresh seeds, or failed there under its budget (its claims
+    are then not tested, not handed to the next): None where neither ran."""
+    return next((n for n in CLAIMANTS if _attempted(fresh, n)), None)
 
 
 def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d: dict,
@@ -283,7 +351,7 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
     seeds = dev_seeds + fresh
     head = ([f"{s.label} (development)" for s in dev_seeds] + [s.label for s in fresh]
             + [f"pooled, {len(fresh)} fresh seeds"])
-    names = [n for n in ("oracle", "ours", *BASELINES, *ABLATIONS) if any(n in s.runs for s in seeds)]
+    names = [n for n in ("oracle", "ours", *BASELINES, *ABLATIONS) if _attempted(seeds, n)]
     name = rec.get("name", rec["preset"])
     begin, end = markers(rec)
     title = "## Confirmation on fresh seeds" + ("" if name == rec["preset"] else f": freeze `{name}`")
@@ -296,25 +364,25 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
              "IoU, mean over test frames (95 % CI, bootstrap over test videos):", "",
              "| method | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for n in names:
-        cells = [_cell(pooled_videos([s], n)) for s in seeds] + [_cell(pooled_videos(fresh, n))]
+        cells = [_seed_cell(s, n) for s in seeds] + [_pooled_cell(fresh, n)]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     a = claimant(fresh)
     if a not in (None, CLAIMANTS[0]):
         lines += ["", f"`{CLAIMANTS[0]}` did not run on these seeds, so the claims below are `{a}`'s, the "
                   "self-supervised pipeline without matching across scenes."]
+    budget_rule = (f" A run that failed under its budget on a seed is left out there; its claims are tested on the seeds "
+                   f"where both sides ran every fold, and not at all with fewer than {MIN_CLAIM_SEEDS} such seeds."
+                   if any(s.failed for s in fresh) else "")
     lines += ["", f"Paired differences over the pooled fresh seeds' test videos (IoU; A − B per video, weighted by "
-              f"its frames; 95 % CI by bootstrap over videos). A claim holds only when its CI excludes 0:", "",
+              f"its frames; 95 % CI by bootstrap over videos). A claim holds only when its CI excludes 0.{budget_rule}",
+              "",
               "| claim | mean | 95 % CI | videos A > B | verdict |"
               + (f" {'; '.join(s.label for s in dev_seeds)} (development) |" if dev_seeds else ""),
               "|---|---|---|---|---|" + ("---|" if dev_seeds else "")]
-    mine = pooled_videos(fresh, a) if a else {}
     for other in (*BASELINES, *ABLATIONS):
-        theirs = pooled_videos(fresh, other)
-        if not mine or not theirs or other == a:
+        if a is None or other == a or not _attempted(fresh, other):
             continue
-        d = paired(mine, theirs)
-        row = (f"| {a} − {other} | {d['mean']:+.3f} | [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | "
-               f"{d['wins']} of {d['n_videos']} | **{d['verdict']}** |")
+        row = claim_row(a, other, fresh)
         if dev_seeds:
             dv = [paired(pooled_videos([s], a), pooled_videos([s], other)) for s in dev_seeds
                   if pooled_videos([s], a) and pooled_videos([s], other)]
@@ -331,11 +399,7 @@ def board_markdown(rec: dict, dev_seeds: list[Seed], fresh: list[Seed], three_d:
         lines += ["", "Table II (3-D, all videos of each seed; IoU over points, mean over videos' frames as in Table II):", "",
                   "| 3-D segmentation | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
         for n in t2:
-            cells = []
-            for label in labels:
-                recs = three_d.get(label, {}).get(n)
-                cells.append(fmt(recs[0]["metrics"]["IoU"]) if recs else "—")
-            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+            lines.append(f"| {n} | " + " | ".join(_t2_cell(three_d.get(label, {}).get(n)) for label in labels) + " |")
     return "\n".join(lines + (noise or []) + ["", end]) + "\n"
 
 

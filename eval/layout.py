@@ -10,6 +10,8 @@ key a dataset's results are filed under. Output layout under ``OUT`` (default ``
     work/_stages/<content hash>-<poses>/          label-free registered methods' per-video stage caches (``Method.stage_root``)
     work/<name>/<dataset>/fold<k>/_stages/        the stage cache of a registered method given labels (its fold's own)
     rejected/<dataset>/<name>/fold<k>.json        a fold whose method reached for ground truth (not scored)
+    failed/<dataset>/<name>/fold<k>.json          a fold whose method passed a compute budget its config declares
+                                                  (not scored, not run again: :mod:`selfseg.eval.resume`)
     replaced/<dataset>/<name>.<pid>/              ``evaluate --replace``: the old run, until the new one finished
 
 ``<name>`` is the method name unless ``--name`` gives a variant name; ``<dataset>`` is the dataset's name,
@@ -43,6 +45,8 @@ STAGE_ROOT_DIR = "work/_stages/{content_hash}-{poses}"  # label-free registered 
 LABELED_STAGE_ROOT_DIR = WORK_DIR + "/_stages"  # the stage_root of a registered method given labels: its fold's own
 METHOD_OUTPUT_DIR = "predictions/{name}/.{dataset}.fold{fold}.method"  # where the method's process writes predictions
 REJECTED_JSON = "rejected/{dataset}/{name}/fold{fold}.json"  # a fold whose method reached for ground truth
+RUN_FAILED_DIR = "failed/{dataset}/{name}"  # one run's folds that failed under a budget (BudgetExceededError)
+FAILED_JSON = RUN_FAILED_DIR + "/fold{fold}.json"
 FOLD_LOCK = "work/{name}/{dataset}/.fold{fold}.lock"  # held while a process runs this fold (fileio.exclusive_lock)
 VIEW_DIR = "work/_views/{content_hash}-{poses}/{folder}"  # the unlabeled copy of a dataset that methods see
 REPLACED_DIR = "replaced/{dataset}/{name}.{pid}"  # evaluate --replace: the old run, deleted once the new one finished

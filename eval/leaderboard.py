@@ -33,7 +33,8 @@ from selfseg.dataset import Dataset, DatasetError, read_inst
 from selfseg.eval.aggregate import fmt, summarize_folds
 from selfseg.eval.metrics import METRIC_KEYS, segment_metrics
 from selfseg.eval.points import POINT_KEYS
-from selfseg.eval.layout import PREDICTION_PNG, PREDICTIONS_DIR, SCHEMA_VERSION, SCORES_DIR, SCORES_JSON
+from selfseg.eval.layout import (FAILED_JSON, PREDICTION_PNG, PREDICTIONS_DIR, SCHEMA_VERSION, SCORES_DIR,
+                                 SCORES_JSON)
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, hash_json, read_json
 
 BEGIN = "<!-- BEGIN GENERATED (selfseg.eval.leaderboard; edits inside are overwritten) -->"
@@ -92,6 +93,18 @@ def load_results(results: Path) -> dict[str, dict[tuple[str, str], list[dict]]]:
                 del groups[task, name]
                 for r in recs:
                     groups[task, f"{name} [{_run_key(r)}]"].append(r)
+    return {d: {k: sorted(v, key=lambda r: r["fold"]) for k, v in sorted(g.items())} for d, g in sorted(out.items())}
+
+
+def load_failures(results: Path) -> dict[str, dict[tuple[str, str], list[dict]]]:
+    """{dataset folder key: {(task, name): [failure records sorted by fold]}} from ``results/failed``: the folds
+    (and 3-D rows) whose method passed a budget its config declares (:func:`selfseg.eval.protocol.record_failure`)."""
+    out: dict[str, dict[tuple[str, str], list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for path in sorted(Path(results).glob(FAILED_JSON.format(dataset="*", name="*", fold="*"))):
+        rec = read_json(path)
+        if rec.get("schema_version") != SCHEMA_VERSION or "failure" not in rec:
+            raise FileFormatError(f"{path}: not a failure record of schema_version {SCHEMA_VERSION}")
+        out[path.parts[-3]][rec.get("task", "2d"), rec["name"]].append(rec)
     return {d: {k: sorted(v, key=lambda r: r["fold"]) for k, v in sorted(g.items())} for d, g in sorted(out.items())}
 
 

@@ -9,7 +9,7 @@ is checked), resampled over videos for the 95 % CI (:func:`selfseg.eval.aggregat
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from selfseg.eval.aggregate import bootstrap_ci
 
@@ -23,6 +23,8 @@ class Seed:
     label: str  # e.g. "seed 184467"
     development: bool  # a development seed is reported beside the fresh ones, never pooled
     runs: dict[str, list[dict]]
+    # run name → its folds that failed under their budget; such a run is not in ``runs`` (not pooled on this seed)
+    failed: dict[str, list[int]] = field(default_factory=dict)
 
 
 def _videos(seed: Seed, name: str, key: str) -> dict[str, dict]:

@@ -32,8 +32,8 @@ from tqdm import tqdm
 from selfseg.config import ConfigError, from_dict
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.folds import EvalOptions, fold_split, select_test_frames
-from selfseg.eval.layout import (FOLD_LOCK, FRAMES_JSONL, LIBRARY_LOG, METHOD_OUTPUT_DIR, N_FOLDS, PREDICTION_PNG,
-                                 PREDICTIONS_DIR, REJECTED_JSON, SCORES_JSON, results_key)
+from selfseg.eval.layout import (FAILED_JSON, FOLD_LOCK, FRAMES_JSONL, LIBRARY_LOG, METHOD_OUTPUT_DIR, N_FOLDS,
+                                 PREDICTION_PNG, PREDICTIONS_DIR, REJECTED_JSON, SCORES_JSON, results_key)
 from selfseg.eval.mounts import fold_mounts, unlabeled_view
 from selfseg.eval.provenance import git_info, provenance
 from selfseg.eval.sandbox import Job, MethodRef, raise_reply_error, run_method_process
@@ -41,7 +41,7 @@ from selfseg.eval.scoring import MethodOutputError, check_prediction, score_fold
 from selfseg.fileio import FileFormatError, atomic_write_text, dumps_json, exclusive_lock, write_json
 from selfseg.guard import GroundTruthAccessError
 from selfseg.library_log import run_log, summary
-from selfseg.method_api import Method
+from selfseg.method_api import BudgetExceededError, Method
 from selfseg.writers import write_inst
 
 
@@ -53,6 +53,10 @@ def estimated_foreground(video, frame_id: int) -> np.ndarray:
     return frame_foreground(video.depth_m(frame_id), video.K(frame_id), BackgroundConfig(),
                             f"video {video.video_id} frame {frame_id}")
 
+
+# evaluate's and evaluate3d's exit status when a fold (or a 3-D row) failed under the budget its config declares
+# (record_failure) and the rest finished
+EXIT_OVER_BUDGET = 3
 
 # Errors a method's process reports that keep their meaning (one line, exit code 2) in the evaluator.
 _INPUT_ERRORS = (MethodOutputError, DatasetError, FileFormatError, ConfigError, FileNotFoundError)
@@ -185,7 +189,13 @@ def _run_fold_locked(ref: MethodRef, config, dataset: Dataset, fold: int, out: P
                 "options": dataclasses.asdict(options), **isolation, "ground_truth_attempts": attempts})
             raise GroundTruthAccessError(f"method {name!r}, fold {fold}: {len(attempts)} attempt(s), first: "
                                          f"{attempts[0]}")
-        raise_reply_error(reply, ref.name, _INPUT_ERRORS, (str(view), str(dataset.root)))
+        try:
+            raise_reply_error(reply, ref.name, (BudgetExceededError, *_INPUT_ERRORS), (str(view), str(dataset.root)))
+        except BudgetExceededError as e:
+            record_failure(out, fmt, {**provenance(ref.name, name, config, dataset, "2d"), "fold": fold,
+                                       "n_folds": N_FOLDS, "train_videos": train_ids, "test_videos": test_ids,
+                                       "options": dataclasses.asdict(options), **isolation}, e)
+            raise
 
         evaluator, score_s = score_fold(output, ref.name, f"{name} fold {fold}", test_frames, gts,
                                         (dataset.height, dataset.width), staging, options, progress)
@@ -224,16 +234,30 @@ def _run_fold_locked(ref: MethodRef, config, dataset: Dataset, fold: int, out: P
     return record
 
 
+def record_failure(out: Path, fmt: dict, record: dict, error: BudgetExceededError) -> Path:
+    """Write the failure record of a fold (or a 3-D row) whose method passed its budget: ``record`` holds the
+    provenance fields of a result record; nothing is scored, and an earlier run's scores of the fold are removed
+    (the fold's outcome is now this failure). Returns its path (``FAILED_JSON``)."""
+    path = Path(out) / FAILED_JSON.format(**fmt)
+    record["dataset"]["key"] = fmt["dataset"]
+    write_json(path, {**record, "failure": {"kind": "budget", "message": str(error)}})
+    for stale in (SCORES_JSON, FRAMES_JSONL):
+        (Path(out) / stale.format(**fmt)).unlink(missing_ok=True)
+    return path
+
+
 def write_result(out: Path, record: dict, frames: list[dict]) -> Path:
     """Atomically write a fold's result record and its per-frame (or per-video) sidecar; returns the JSON path.
 
     ``record`` needs at least the :func:`provenance` fields, ``fold``, ``metrics`` (with
     ``n_frames``), ``per_video``, ``ci95`` and ``timings`` (``fit_s``, ``ms_per_frame``): the 3-D
-    (Table II) results of later stages use the same writer with ``task="3d"``.
+    (Table II) results of later stages use the same writer with ``task="3d"``. A failure record of the same fold
+    (:func:`record_failure`) is removed.
     """
     fmt = {"dataset": record["dataset"].get("key", record["dataset"]["name"]), "name": record["name"],
            "fold": record["fold"]}
     path = Path(out) / SCORES_JSON.format(**fmt)
     write_json(path, record)
     atomic_write_text(Path(out) / FRAMES_JSONL.format(**fmt), "".join(dumps_json(f, indent=None) + "\n" for f in frames))
+    (Path(out) / FAILED_JSON.format(**fmt)).unlink(missing_ok=True)  # an earlier run's failure of this fold, if any
     return path

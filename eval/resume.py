@@ -1,5 +1,5 @@
-"""Resuming and refusing runs: a fold finished by an identical earlier run is reused (:func:`finished_fold`), and a
-run name holds one run: ``evaluate`` refuses a run whose method, config or options differ from those already filed
+"""Resuming and refusing runs: a fold finished by an identical earlier run is reused (:func:`finished_fold`), one
+that failed under its budget in an identical earlier run is not run again (:func:`failed_fold`), and a run name holds one run: ``evaluate`` refuses a run whose method, config or options differ from those already filed
 under its name (:func:`run_conflict`) unless ``--replace`` is given (:func:`retire_run`)."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 from selfseg.config import config_hash, to_dict
 from selfseg.dataset import Dataset
 from selfseg.eval.folds import EvalOptions, select_test_frames
-from selfseg.eval.layout import (PREDICTION_PNG, PREDICTIONS_DIR, REPLACED_DIR, RUN_SCORES_DIR, SCORES_JSON,
-                                 results_key)
+from selfseg.eval.layout import (FAILED_JSON, PREDICTION_PNG, PREDICTIONS_DIR, REPLACED_DIR, RUN_FAILED_DIR,
+                                 RUN_SCORES_DIR, SCORES_JSON, results_key)
 from selfseg.eval.provenance import git_info
 from selfseg.eval.sandbox import MethodRef
 from selfseg.fileio import read_json
@@ -22,6 +22,13 @@ def _resume_key(record: dict) -> dict:
     options = {k: v for k, v in record["options"].items() if k != "folds"}
     return {"method": record["method"], "config_hash": record["config_hash"], "options": options,
             "dataset": record["dataset"]["content_hash"], "commit": record["git"]["commit"]}
+
+
+def _wanted_key(method_cls: MethodRef | type[Method], config, dataset: Dataset, options: EvalOptions) -> dict:
+    """The :func:`_resume_key` a record of this run would have if made now, from this checkout."""
+    return {"method": method_cls.name, "config_hash": config_hash(config),
+            "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "folds"},
+            "dataset": dataset.content_hash(), "commit": git_info()["commit"]}
 
 
 def _differences(old, new, prefix: str = "") -> list[str]:
@@ -39,7 +46,8 @@ def run_conflict(out: Path, dataset: Dataset, method: str, config, options: Eval
     name = options.name or method
     new = {"method": method, "config": to_dict(config),
            "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "folds"}}
-    for path in sorted((Path(out) / RUN_SCORES_DIR.format(dataset=results_key(out, dataset), name=name)).glob("fold*.json")):
+    fmt = {"dataset": results_key(out, dataset), "name": name}
+    for path in sorted(p for d in (RUN_SCORES_DIR, RUN_FAILED_DIR) for p in (Path(out) / d.format(**fmt)).glob("fold*.json")):
         rec = read_json(path)
         old = {"method": rec.get("method"), "config": rec.get("config"),
                "options": {k: v for k, v in rec.get("options", {}).items() if k != "folds"}}
@@ -51,11 +59,13 @@ def run_conflict(out: Path, dataset: Dataset, method: str, config, options: Eval
 
 
 def retire_run(out: Path, dataset: Dataset, name: str) -> Path:
-    """Move run ``name``'s scores and predictions for ``dataset`` out of the way (renames, so no fold of the old
-    run stays beside the new one's); returns the folder they went to, to delete once the new run finished."""
+    """Move run ``name``'s scores, failure records and predictions for ``dataset`` out of the way (renames, so no
+    fold of the old run stays beside the new one's); returns the folder they went to, to delete once the new run
+    finished."""
     fmt = {"dataset": results_key(out, dataset), "name": name}
     trash = Path(out) / REPLACED_DIR.format(**fmt, pid=os.getpid())
     for kind, folder in (("scores", Path(out) / RUN_SCORES_DIR.format(**fmt)),
+                         ("failed", Path(out) / RUN_FAILED_DIR.format(**fmt)),
                          ("predictions", Path(out) / PREDICTIONS_DIR.format(**fmt))):
         if folder.exists():
             trash.mkdir(parents=True, exist_ok=True)
@@ -72,9 +82,7 @@ def finished_fold(method_cls: MethodRef | type[Method], config, dataset: Dataset
     if not path.is_file():
         return None
     record = read_json(path)
-    want = {"method": method_cls.name, "config_hash": config_hash(config),
-            "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "folds"},
-            "dataset": dataset.content_hash(), "commit": git_info()["commit"]}
+    want = _wanted_key(method_cls, config, dataset, options)
     pred_dir = Path(out) / PREDICTIONS_DIR.format(**fmt)
     frames = [(v, f) for v in record.get("test_videos", []) for f in select_test_frames(
         dataset.video(v).frame_ids, options.frame_stride, options.limit)]
@@ -82,3 +90,16 @@ def finished_fold(method_cls: MethodRef | type[Method], config, dataset: Dataset
             not all((pred_dir / PREDICTION_PNG.format(video_id=v, frame_id=f)).is_file() for v, f in frames):
         return None
     return record
+
+
+def failed_fold(method_cls: MethodRef | type[Method], config, dataset: Dataset, fold: int, out: Path,
+                options: EvalOptions = EvalOptions()) -> Path | None:
+    """The failure record of this fold (``FAILED_JSON``: it passed a budget its config declares) if an earlier run
+    had the same method, config, options, dataset content and commit, else None. ``evaluate`` does not run such a
+    fold again: the same run would pass the same budget, and a larger budget is a new config."""
+    fmt = {"dataset": results_key(out, dataset), "name": options.name or method_cls.name, "fold": fold}
+    path = Path(out) / FAILED_JSON.format(**fmt)
+    if not path.is_file():
+        return None
+    want = _wanted_key(method_cls, config, dataset, options)
+    return path if want["commit"] is not None and _resume_key(read_json(path)) == want else None

@@ -11,7 +11,8 @@ order given, and the first that qualifies is the answer (the rest are not run). 
 ours-v3 --folds 0`` (the real CLI, its own process): fold 0's φ1 on its own segments, then `ours`'s matching of
 every pair of the fold's training scenes, in one process (``pseudo.match.workers=1``), with a MILP node limit
 (``pseudo.match.node_limit``; the wall-clock ``time_limit_s`` only as a safety net far above it) and a CPU budget
-(``pseudo.match.cpu_budget_s``, counted in CPU seconds and enforced by the kernel). A candidate qualifies when
+(``--cpu-budget-s`` for the fold, given as ``pseudo.match.cpu_budget_per_pair_s``: it over the fold's pairs of
+training scenes; counted in CPU seconds and enforced by the kernel). A candidate qualifies when
 its matching finishes within the budget with at most ``--max-limit-share`` of its solved component pairs stopped
 by a limit (status "time_limit": the node limit, or the safety net). The rows hold the matching statistics only:
 `evaluate` is stopped as soon as the matching's file is written, so φ2 never trains and the fold is never scored.
@@ -29,6 +30,7 @@ from pathlib import Path
 from common import parse_inputs, pseudo_stage, save_rows
 
 from selfseg.dataset import Dataset
+from selfseg.eval.folds import fold_split
 from selfseg.eval.layout import WORK_DIR, results_key
 from selfseg.fileio import read_json
 from selfseg.method.pseudolabels import MATCHES_JSON
@@ -39,8 +41,10 @@ SAFETY_TIME_LIMIT_S = 600.0  # per MILP solve, wall-clock: far above what the no
 def run_candidate(args, name: str, sets: list[str]) -> dict:
     """Run fold 0 of V3 for one candidate and return its row (verdict and matching statistics)."""
     run = f"feasibility-{name}"
+    n_train = len(fold_split(Dataset(args.data), 0)[0])
+    per_pair = args.cpu_budget_s / (n_train * (n_train - 1) / 2)  # the fold's budget over its pairs of scenes
     budget = ["pseudo.match.workers=1", f"pseudo.match.node_limit={args.node_limit}",
-              f"pseudo.match.time_limit_s={SAFETY_TIME_LIMIT_S}", f"pseudo.match.cpu_budget_s={args.cpu_budget_s}"]
+              f"pseudo.match.time_limit_s={SAFETY_TIME_LIMIT_S}", f"pseudo.match.cpu_budget_per_pair_s={per_pair!r}"]
     cmd = [str(Path(sys.executable).with_name("evaluate")), "--method", "ours-v3", "--name", run, "--folds", "0",
            "--data", args.data, "--out", args.out, "--quiet", "--config", args.config,
            *[a for s in [*sets, *budget] for a in ("--set", s)]]

@@ -52,6 +52,7 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from tqdm import tqdm
 
 from selfseg.executor import make_executor
+from selfseg.method_api import BudgetExceededError
 
 # "time_limit": the MILP stopped at a limit, its time limit or its node limit, so the match is not proven optimal
 Status = Literal["prefiltered_empty", "lp_integral", "milp_optimal", "time_limit"]
@@ -77,9 +78,10 @@ class MatchConfig:
     mip_rel_gap: float = 1e-7  # HiGHS relative gap at which a MILP solution counts as optimal
     int_tol: float = 1e-6  # an LP value within this of 0 or 1 counts as integral
     workers: int = 2  # processes for match_all when no executor is given (≤ 1: in-process)
-    # CPU seconds match_all may spend over all its tasks (None: no budget); past it, MatchBudgetError. Counted in
-    # CPU, not wall time, so the verdict does not depend on the machine's load (see match_all)
-    cpu_budget_s: float | None = None
+    # CPU seconds match_all may spend per pair of scenes it matches (None: no budget), summed over all its tasks; past
+    # it, MatchBudgetError. Per pair, so a fold's matching and Table II's (every scene) get the same rule; counted
+    # in CPU, not wall time, so the verdict does not depend on the machine's load (see match_all)
+    cpu_budget_per_pair_s: float | None = None
     pairs_per_task: int = 8  # scene pairs solved as one stacked batch per executor task
 
 
@@ -150,8 +152,8 @@ class PairMatch:
     cpu_s: float = 0.0  # its equal share of the CPU seconds of the task (scene pairs) that solved it
 
 
-class MatchBudgetError(RuntimeError):
-    """Matching spent more CPU seconds than ``MatchConfig.cpu_budget_s``."""
+class MatchBudgetError(BudgetExceededError):
+    """Matching spent more CPU seconds than ``MatchConfig.cpu_budget_per_pair_s`` × its scene pairs."""
 
 
 def cosine_distance(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
@@ -646,8 +648,9 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
     ``make_executor("ray")``) can be passed instead. Results are sorted by (src_scene, src_comp, tgt_scene, tgt_comp), so the output
     does not depend on scheduling.
 
-    With ``cfg.cpu_budget_s``, the tasks' CPU seconds (measured in whichever process runs them) are summed as
-    they finish, and MatchBudgetError is raised once the sum passes the budget. Without an ``executor`` the
+    With ``cfg.cpu_budget_per_pair_s``, the budget is that × the number of scene pairs; the tasks' CPU seconds
+    (measured in whichever process runs them) are summed as they finish, and MatchBudgetError is raised once the
+    sum passes the budget. Without an ``executor`` the
     tasks then run in a pool of ``max(1, cfg.workers)`` processes whose CPU the kernel limits to the budget
     (RLIMIT_CPU), so one task that runs past the whole budget is stopped too; a given executor's tasks are
     only counted when they finish.
@@ -657,15 +660,16 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
     tasks = [pairs[t:t + step] for t in range(0, len(pairs), step)]
     args = [(task, {s: scenes[s] for pair in task for s in pair}, cfg) for task in tasks]
     out: list[PairMatch] = []
-    budget = cfg.cpu_budget_s
+    budget = None if cfg.cpu_budget_per_pair_s is None else cfg.cpu_budget_per_pair_s * len(pairs)
+    per_pair = f"{cfg.cpu_budget_per_pair_s:g} s per scene pair" if budget is not None else ""
     bar = tqdm(total=len(pairs), desc="matching scene pairs", disable=not progress)
 
     def collect(part: list[PairMatch], n_pairs: int) -> None:
         out.extend(part)
         bar.update(n_pairs)
         if budget is not None and sum(m.cpu_s for m in out) > budget:
-            raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s "
-                                   f"({bar.n} of {len(pairs)} scene pairs done)")
+            raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s ({per_pair}; "
+                                   f"{bar.n} of {len(pairs)} scene pairs done)")
 
     if executor is None and cfg.workers <= 1 and budget is None:
         for a in args:
@@ -688,9 +692,9 @@ def match_all(scenes: Sequence[SceneGraph], cfg: MatchConfig,
                     codes = sorted({p.exitcode for p in ctx.processes if p.exitcode})
                     if -signal.SIGXCPU not in codes:  # not the budget's doing: say how the workers ended
                         raise BrokenProcessPool(f"a matching worker ended abruptly (exit codes {codes})") from None
-                    raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s in one task "
-                                           f"(the kernel stopped its worker; {bar.n} of {len(pairs)} scene pairs "
-                                           "done)") from None
+                    raise MatchBudgetError(f"matching used more than its CPU budget of {budget:g} s ({per_pair}) "
+                                           f"in one task (the kernel stopped its worker; {bar.n} of {len(pairs)} "
+                                           "scene pairs done)") from None
                 collect(part, futures[fut])
         except BaseException:
             if own:

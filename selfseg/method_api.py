@@ -21,6 +21,12 @@ import numpy as np
 from selfseg.dataset import Video
 
 
+class BudgetExceededError(RuntimeError):
+    """A method gave up because it passed a compute budget its config declares (e.g. matching's CPU seconds). The
+    evaluator records the fold as failed under its budget, scores nothing of it and does not run it again
+    (:mod:`selfseg.eval.protocol`); leaderboards show the failure."""
+
+
 @dataclasses.dataclass
 class NoConfig:
     """For methods without settings."""

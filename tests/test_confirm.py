@@ -7,6 +7,7 @@ from selfseg.eval import confirm
 from selfseg.eval.cli import main as evaluate
 from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, END, NAMED_BEGIN, ROOT, SEED_RESULTS_DIR, FreezeError,
                                   board, check_checkout, freeze, fresh_seeds, frozen_paths_differ, main, read_freeze)
+from selfseg.eval.layout import FAILED_JSON
 from selfseg.eval.leaderboard import BEGIN as BUILD_BEGIN
 from selfseg.eval.pooled import paired, pooled_videos, score
 from selfseg.fileio import read_json, write_json
@@ -168,6 +169,49 @@ def test_where_ours_did_not_run_the_claims_are_v2s(runs, tmp_path):
     assert "| ours − " not in text and "| ours-v2 − ours-v2" not in text
     board(rec, root, [], page)  # with `ours` the claims are its own again
     assert "did not run on these seeds" not in page.read_text()
+
+def _fail(results, name: str, fold: int, task: str = "2d") -> None:
+    """Turn run ``name``'s fold (or a made-up 3-D row) into a failure record, as evaluate writes it."""
+    if task == "2d":
+        path = next(results.glob(f"scores/*/{name}/fold{fold}.json"))
+        rec = read_json(path)
+        path.unlink()
+    else:
+        rec = {**read_json(next(results.glob("scores/*/*/fold0.json"))), "name": name, "task": task, "fold": fold}
+    rec = {k: v for k, v in rec.items() if k not in ("metrics", "per_video", "ci95")}
+    write_json(results / FAILED_JSON.format(dataset=rec["dataset"]["key"], name=name, fold=fold),
+               {**rec, "failure": {"kind": "budget", "message": "matching used more than its CPU budget"}})
+
+
+def test_a_run_over_its_budget_is_shown_failed_and_its_claims_need_two_seeds(runs, tmp_path):
+    """`ours` fails fold 1 under its budget on one of three seeds: that seed's cell says so, the pooled cell holds
+    the other two seeds, and the claim is tested on those two; failing on a second seed leaves one, so the claim
+    is not tested. A failed Table II row is shown failed."""
+    import shutil
+
+    root, rec = runs
+    three = tmp_path / "three"
+    for seed, src in ((101, 101), (202, 202), (303, 101)):
+        shutil.copytree(root / SEED_RESULTS_DIR.format(seed=src), three / SEED_RESULTS_DIR.format(seed=seed))
+    _fail(three / SEED_RESULTS_DIR.format(seed=202), "ours", 1)
+    _fail(three / SEED_RESULTS_DIR.format(seed=202), "ours-matching", 0, task="3d")
+    page = tmp_path / "analytic.md"
+    board(rec, three, [], page)
+    lines = page.read_text().splitlines()
+    ours = next(line for line in lines if line.startswith("| ours | "))
+    assert ours == ("| ours | 1.000 (1.000–1.000) | failed: over budget (fold 1) | 1.000 (1.000–1.000) | "
+                    "1.000 (1.000–1.000), 2 of 3 seeds |")
+    claim = next(line for line in lines if line.startswith("| ours − depth-clustering"))
+    assert "6 of 6 (2 of 3 seeds: a failure on seed 202)" in claim and "**holds**" in claim
+    assert "| ours-matching | — | failed: over budget | — |" in lines
+    assert "not at all with fewer than 2 such seeds" in page.read_text()
+
+    _fail(three / SEED_RESULTS_DIR.format(seed=303), "ours", 0)
+    board(rec, three, [], page)
+    claim = next(line for line in page.read_text().splitlines() if line.startswith("| ours − depth-clustering"))
+    assert claim == ("| ours − depth-clustering | — | — | — | **not tested**: ours failed under its budget on seed 202, "
+                     "seed 303, 1 seed left (needs 2) |")
+
 
 def test_board_refuses_a_record_from_code_that_moved_since_the_freeze(runs, tmp_path):
     root, rec = runs

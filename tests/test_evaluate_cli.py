@@ -1,12 +1,18 @@
-"""The `evaluate` command: a successful run, and input errors that name the culprit and exit 2."""
+"""The `evaluate` command: a successful run, input errors that name the culprit and exit 2, and a fold over its
+budget."""
+import dataclasses
 import os
 
 import numpy as np
 import pytest
 
+from selfseg.dataset import Dataset
 from selfseg.eval.cli import main
-from selfseg.eval.layout import FOLD_LOCK, PREDICTIONS_DIR
+from selfseg.eval.folds import fold_split
+from selfseg.eval.layout import FAILED_JSON, FOLD_LOCK, PREDICTIONS_DIR
+from selfseg.eval.protocol import EXIT_OVER_BUDGET
 from selfseg.fileio import exclusive_lock
+from selfseg.method_api import BudgetExceededError, Method
 from selfseg.writers import write_inst
 
 
@@ -146,3 +152,56 @@ def test_a_fold_another_process_runs_is_refused_untouched(analytic_dataset, tmp_
         assert run_cli(capsys, *args, "--folds", "1")[0] == 0
     code, _, err = run_cli(capsys, *args, "--folds", "0")
     assert code == 0 and (tmp_path / "scores/analytic/fg-components/fold0.json").is_file(), err
+
+
+@dataclasses.dataclass
+class OverBudgetConfig:
+    over_budget: bool = True  # fit passes its budget when video 000001 is not among its training videos
+
+
+class OverBudgetWithout(Method):
+    """The whole foreground as one segment, but (``over_budget``) passes its budget when video 000001 is not a
+    training video (one fold of the analytic dataset)."""
+
+    name = "over-budget"
+    config_cls = OverBudgetConfig
+
+    def fit(self, train_videos):
+        if self.config.over_budget and "000001" not in [v.video_id for v in train_videos]:
+            raise BudgetExceededError("used more than its CPU budget of 1 s")
+
+    def segment(self, video, frame_id, fg_mask):
+        return fg_mask.astype(np.uint16)
+
+
+def test_a_fold_over_its_budget_is_recorded_failed_and_not_run_again(analytic_dataset, tmp_path, capsys):
+    """A fold whose method passes its budget gets a failure record (not scored), the other folds run, the exit status
+    is 3; run again, the failed fold is not retried (the same run would fail again), and --replace retires it."""
+    import json
+
+    args = ["--method", "test_evaluate_cli:OverBudgetWithout", "--data", analytic_dataset, "--frame-stride", "3",
+            "--out", tmp_path, "--quiet"]
+    k = next(f for f in range(3) if "000001" in fold_split(Dataset(analytic_dataset), f)[1])  # the fold to fail
+    failed = tmp_path / FAILED_JSON.format(dataset="analytic", name="over-budget", fold=k)
+    scores = tmp_path / "scores/analytic/over-budget"
+    code, out, err = run_cli(capsys, *args)
+    assert code == EXIT_OVER_BUDGET, err
+    assert sorted(p.name for p in scores.glob("*.json")) == [f"fold{f}.json" for f in range(3) if f != k]
+    assert "IoU" in out
+    rec = json.loads(failed.read_text())
+    assert rec["fold"] == k and rec["failure"]["kind"] == "budget" and "CPU budget of 1 s" in rec["failure"]["message"]
+    assert rec["config_hash"] and rec["git"]["commit"] and "metrics" not in rec
+    assert f"fold {k}" in err and str(failed) in err
+
+    code, _, err = run_cli(capsys, *args, "--folds", str(k))
+    assert code == EXIT_OVER_BUDGET and "earlier identical run; not run again" in err
+    # a failure record of another commit is not this run's: the fold runs (and fails) again, rewriting it
+    rec["git"]["commit"] = "0" * 40
+    failed.write_text(json.dumps(rec))
+    code, _, err = run_cli(capsys, *args, "--folds", str(k))
+    assert code == EXIT_OVER_BUDGET and "CPU budget of 1 s" in err
+    assert json.loads(failed.read_text())["git"]["commit"] != "0" * 40
+    # --replace with another config retires the old run, its failure record too
+    code, _, err = run_cli(capsys, *args, "--folds", str(k), "--set", "over_budget=false", "--replace")
+    assert code == 0, err
+    assert not failed.exists() and sorted(p.name for p in scores.glob("*.json")) == [f"fold{k}.json"]

@@ -246,7 +246,7 @@ def test_match_all_every_component_pair_both_directions():
     stats = match_stats(serial, MatchConfig())
     assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0 and stats["cpu_s"] > 0
     # a CPU budget it stays within changes nothing (its tasks then run in a budget-limited pool)
-    budgeted = match_all(scenes, MatchConfig(workers=1, cpu_budget_s=600.0), progress=False)
+    budgeted = match_all(scenes, MatchConfig(workers=1, cpu_budget_per_pair_s=600.0), progress=False)
     assert [m.result.node_map for m in budgeted] == [m.result.node_map for m in serial]
 
 
@@ -258,12 +258,12 @@ def clique_scene(name: str, n: int) -> SceneGraph:
 def test_a_cpu_budget_stops_matching_by_cpu_seconds_not_by_the_clock():
     # matching 9 against 12 touching segments takes about 40 CPU-s; the kernel stops its worker at 1 CPU-s
     with pytest.raises(MatchBudgetError, match="CPU budget of 1 s"):
-        match_all([clique_scene("a", 9), clique_scene("b", 12)], MatchConfig(workers=1, cpu_budget_s=1.0),
+        match_all([clique_scene("a", 9), clique_scene("b", 12)], MatchConfig(workers=1, cpu_budget_per_pair_s=1.0),
                   progress=False)
     # tasks that finish are counted as they finish: six easy scene pairs, one per task, past a tiny budget
     easy = [clique_scene(f"s{k}", 3) for k in range(4)]
     with cf.ThreadPoolExecutor(1) as ex, pytest.raises(MatchBudgetError, match="scene pairs done"):
-        match_all(easy, MatchConfig(pairs_per_task=1, cpu_budget_s=1e-9), executor=ex, progress=False)
+        match_all(easy, MatchConfig(pairs_per_task=1, cpu_budget_per_pair_s=1e-9), executor=ex, progress=False)
 
 
 def _worker_dies(*args):
@@ -274,7 +274,7 @@ def test_a_worker_that_dies_for_another_reason_is_not_called_over_budget(monkeyp
     # the budget's error needs the kernel's CPU signal (SIGXCPU) as the worker's end; any other end is named
     monkeypatch.setattr(matching, "_match_scene_pairs", _worker_dies)
     with pytest.raises(BrokenProcessPool, match=r"exit codes \[3\]"):
-        match_all([clique_scene("a", 3), clique_scene("b", 3)], MatchConfig(workers=1, cpu_budget_s=60.0),
+        match_all([clique_scene("a", 3), clique_scene("b", 3)], MatchConfig(workers=1, cpu_budget_per_pair_s=60.0),
                   progress=False)
 
 

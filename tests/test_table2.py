@@ -9,7 +9,7 @@ from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import evaluate3d_main as main
-from selfseg.eval.layout import FRAMES_JSONL, SCORES_JSON, WORK_DIR
+from selfseg.eval.layout import FAILED_JSON, FRAMES_JSONL, SCORES_JSON, WORK_DIR
 from selfseg.eval.leaderboard import main as build_leaderboards
 from selfseg.eval.points import evaluate_points
 from selfseg.eval.table2 import FOLD, ROWS, alignment, format_matching, run_table2, segment_scenes
@@ -120,3 +120,12 @@ def test_table2_rows_alignment_and_leaderboard(tmp_path):
     table2 = md[md.index("## Table II"):md.index("## Table III")]
     for row in ROWS:
         assert f"**{row}**" in table2
+
+    # matching over its CPU budget: the ours-matching row's outcome is a failure record (its earlier scores go), the
+    # other rows are scored as before
+    over = load_config(OursConfig, overrides=[*FAST, "pseudo.match.cpu_budget_per_pair_s=1e-9"])
+    again = run_table2(ds, over, out, ROWS, models=models, progress=False)
+    assert [r["name"] for r in again] == list(ROWS) and "CPU budget" in again[2]["failure"]["message"]
+    assert [r["metrics"] for i, r in enumerate(again) if i != 2] == [r["metrics"] for i, r in enumerate(records) if i != 2]
+    assert read_json(out / FAILED_JSON.format(dataset=ds.name, name="ours-matching", fold=FOLD))["task"] == "3d"
+    assert not (out / SCORES_JSON.format(dataset=ds.name, name="ours-matching", fold=FOLD)).exists()
