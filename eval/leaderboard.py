@@ -297,10 +297,23 @@ def tables(groups: dict, dataset: str) -> list[tuple[str, list[str]]]:
              _short_table(groups, "2d", lambda n: n == "ours" or _is_ablation(n), METRIC_KEYS, PAPER_TABLE3))]
 
 
-def generated_markdown(dataset: str, groups: dict, montage_file: str | None, report_file: str | None = None) -> str:
+def failure_lines(failures: dict) -> list[str]:
+    """A note naming the runs (:func:`load_failures` groups of one dataset) with folds or 3-D rows that failed
+    under their budget: their rows above hold the other folds only, or are missing."""
+    if not failures:
+        return []
+    return ["", "**Failed under their budget** (not scored; a row above averages its other folds only):", "",
+            *(f"- {name} ({task}), fold {', '.join(str(r['fold']) for r in recs)}: {recs[0]['failure']['message']}"
+              for (task, name), recs in failures.items())]
+
+
+def generated_markdown(dataset: str, groups: dict, montage_file: str | None, report_file: str | None = None,
+                       failures: dict | None = None) -> str:
     (t1, lines1), (t2, lines2), (t3, lines3) = tables(groups, dataset)
-    lines = [BEGIN, "", f"## {t1}", "", TABLES_NOTE, "", *lines1, "", f"![IoU per method]({dataset}_iou.png)", "",
-             f"## {t2}", "", *lines2, "", f"## {t3}", "", *lines3, "", "## Qualitative", ""]
+    fail2d, fail3d = ({k: v for k, v in (failures or {}).items() if k[0] == t} for t in ("2d", "3d"))
+    lines = [BEGIN, "", f"## {t1}", "", TABLES_NOTE, "", *lines1, *failure_lines(fail2d), "",
+             f"![IoU per method]({dataset}_iou.png)", "",
+             f"## {t2}", "", *lines2, *failure_lines(fail3d), "", f"## {t3}", "", *lines3, "", "## Qualitative", ""]
     lines.append(f"![RGB, ground truth and predictions]({montage_file})" if montage_file
                  else "(montage not built: the dataset folder recorded in the results is not available)")
     if report_file:
@@ -325,6 +338,7 @@ def build(results: str | Path, out: str | Path) -> list[Path]:
     """Write every dataset's leaderboard files; returns the paths written."""
     results, out = Path(results), Path(out)
     written = []
+    failures = load_failures(results)
     for dataset, groups in load_results(results).items():
         md = out / f"{dataset}.md"
         chart = bar_chart(groups, f"IoU per method: {dataset}")
@@ -337,7 +351,8 @@ def build(results: str | Path, out: str | Path) -> list[Path]:
         report = REPORT_HTML.format(dataset=dataset)
         text = replace_generated(md.read_text() if md.is_file() else None,
                                  generated_markdown(dataset, groups, f"{dataset}_montage.png" if mont else None,
-                                                    report if (out / report).is_file() else None),
+                                                    report if (out / report).is_file() else None,
+                                                    failures.get(dataset)),
                                  f"Leaderboard: {dataset}")
         atomic_write_text(md, text)
         written.append(md)

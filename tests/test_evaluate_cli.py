@@ -10,6 +10,7 @@ from selfseg.dataset import Dataset
 from selfseg.eval.cli import main
 from selfseg.eval.folds import fold_split
 from selfseg.eval.layout import FAILED_JSON, FOLD_LOCK, PREDICTIONS_DIR
+from selfseg.eval.leaderboard import main as build_leaderboards
 from selfseg.eval.protocol import EXIT_OVER_BUDGET
 from selfseg.fileio import exclusive_lock
 from selfseg.method_api import BudgetExceededError, Method
@@ -192,6 +193,8 @@ def test_a_fold_over_its_budget_is_recorded_failed_and_not_run_again(analytic_da
     assert rec["fold"] == k and rec["failure"]["kind"] == "budget" and "CPU budget of 1 s" in rec["failure"]["message"]
     assert rec["config_hash"] and rec["git"]["commit"] and "metrics" not in rec
     assert f"fold {k}" in err and str(failed) in err
+    assert build_leaderboards(["--results", str(tmp_path), "--out", str(tmp_path / "lb")]) == 0  # names the failure
+    assert f"- over-budget (2d), fold {k}: used more than its CPU budget of 1 s" in (tmp_path / "lb/analytic.md").read_text()
 
     code, _, err = run_cli(capsys, *args, "--folds", str(k))
     assert code == EXIT_OVER_BUDGET and "earlier identical run; not run again" in err
