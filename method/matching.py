@@ -151,6 +151,23 @@ class PairMatch:
     result: MatchResult = field(repr=False)
     cpu_s: float = 0.0  # its equal share of the CPU seconds of the task (scene pairs) that solved it
 
+    def to_json(self) -> dict:
+        """A JSON-able dict that :meth:`from_json` turns back into an equal PairMatch (floats exactly)."""
+        r = self.result
+        return {"src_scene": self.src_scene, "src_comp": self.src_comp, "tgt_scene": self.tgt_scene,
+                "tgt_comp": self.tgt_comp, "n_src_nodes": self.n_src_nodes, "n_src_edges": self.n_src_edges,
+                "cpu_s": float(self.cpu_s), "node_map": [[int(i), int(k)] for i, k in r.node_map.items()],
+                "edge_map": [[list(map(int, e1)), list(map(int, e2))] for e1, e2 in r.edge_map],
+                "cost": float(r.cost), "status": r.status, "solve_s": float(r.solve_s), "n_vars": int(r.n_vars),
+                "milp_nodes": int(r.milp_nodes), "cost_bound": None if r.cost_bound is None else float(r.cost_bound)}
+
+    @classmethod
+    def from_json(cls, d: dict) -> PairMatch:
+        result = MatchResult({i: k for i, k in d["node_map"]}, [(tuple(e1), tuple(e2)) for e1, e2 in d["edge_map"]],
+                             d["cost"], d["status"], d["solve_s"], d["n_vars"], d["milp_nodes"], d["cost_bound"])
+        return cls(d["src_scene"], d["src_comp"], d["tgt_scene"], d["tgt_comp"], d["n_src_nodes"], d["n_src_edges"],
+                   result, d["cpu_s"])
+
 
 class MatchBudgetError(BudgetExceededError):
     """Matching spent more CPU seconds than ``MatchConfig.cpu_budget_per_pair_s`` × its scene pairs."""

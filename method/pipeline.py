@@ -12,6 +12,8 @@ Per set of training videos, also in the shared stage cache:
 - ``phi1/<hash>/``: φ1, trained on the over-segment maps (the hash covers its settings and data), and the φ1
   segment features of its training videos (``features-<hash>/<vid>.npy``), shared by `ours` and the
   ablations that match with the same φ1.
+- ``matches/matches-<hash>.json``: the matching of those segment graphs under one MatchConfig (the hash covers
+  both), so that `ours` and V3, which differ only after it, match once.
 
 Per fold, in the method's workdir (keyed by the settings and the training videos):
 
@@ -58,6 +60,7 @@ from selfseg.writers import write_inst
 SEGMENTS_NPZ = "segments.npz"  # overseg: the segment graph (segment per reconstructed point, −1 = none; edges; sizes)
 SEGMAPS_DIR = "segmaps"  # overseg: the segments projected into every frame (LABEL_MAP_PNG files)
 OVERSEG_REPORT_JSON = "report.json"  # overseg: point, segment, edge and component counts; timings (s)
+MATCH_CACHE_DIR = "matches"  # in the stage root: matchings kept for runs that share them (pseudolabels.MATCH_CACHE_JSON)
 PHI1_DIR = "phi1/{key_hash}"  # in the stage root: φ1 trained on the over-segments of a set of videos
 PHI1_FEATURES_NPY = "features-{key_hash}/{video_id}.npy"  # in a PHI1_DIR: φ1 feature per segment of a training
 # video (n_segments × D, unit vectors); the hash covers the feature settings and the device
@@ -273,7 +276,8 @@ class Ours(EmbeddingMethodBase):
             feats = self.phi1_features(v, graph, recons[-1], cache, phi1)
             scenes.append(SceneData(v.video_id, recons[-1].points_w, graph, feats))
         with out.write(*PSEUDO_STAGE, key) as tmp:
-            labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor)
+            labels = make_pseudo_labels(scenes, cfg.pseudo, tmp, executor=self.executor,
+                                        match_cache=cache.root / MATCH_CACHE_DIR)
             for v, scene, rec in zip(videos, scenes, recons):
                 for template, array in ((FEATURES_NPY, scene.features), (LABELS_NPY, labels[v.video_id])):
                     (tmp / template.format(video_id=v.video_id)).parent.mkdir(exist_ok=True)

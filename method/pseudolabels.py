@@ -25,6 +25,7 @@ decision and its reason; plus matching statistics and each scene's merged groups
 from __future__ import annotations
 
 import concurrent.futures as cf
+import hashlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,8 +37,8 @@ from tqdm import tqdm
 
 from selfseg.config import to_dict
 from selfseg.executor import make_executor
-from selfseg.fileio import write_json
-from selfseg.method.matching import MatchConfig, SceneGraph, cosine_distance, match_all, match_stats
+from selfseg.fileio import dumps_json, read_json, write_json
+from selfseg.method.matching import MatchConfig, PairMatch, SceneGraph, cosine_distance, match_all, match_stats
 from selfseg.method.pruning import MatchDecision, NodeDecision, PruneConfig, prune_matches, register_clouds
 from selfseg.method.registration import precision_recall
 from selfseg.method.segment_graph import SegmentGraph
@@ -45,6 +46,9 @@ from selfseg.method.segment_graph import SegmentGraph
 
 # Files written to make_pseudo_labels' out_dir.
 MATCHES_JSON = "matches.json"  # every non-empty match: maps, J, T1, registration, node decisions; merged groups
+# In a match cache folder (make_pseudo_labels' match_cache): match_all's result for one set of scene graphs and one
+# MatchConfig (its worker count aside), so that runs differing only after matching (ours, V3) match once
+MATCH_CACHE_JSON = "matches-{key_hash}.json"
 DIAGNOSTICS_JSON = "diagnostics.json"  # what matching and pruning did, stage by stage (:func:`diagnostics`)
 # node-pair rejection reasons in the order pruning applies them (criterion 1, 2, 3)
 REJECTION_ORDER = ("cost_above_T1", "no_mapped_edge", "registration_failed", "precision_recall", "isolation")
@@ -231,24 +235,55 @@ def _v4_decisions(graphs: list[SceneGraph], clouds: list[list[np.ndarray]], cfg:
 
 
 def make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out_dir: str | Path,
-                       executor: cf.Executor | None = None, progress: bool = True) -> dict[str, np.ndarray]:
+                       executor: cf.Executor | None = None, progress: bool = True,
+                       match_cache: str | Path | None = None) -> dict[str, np.ndarray]:
     """Per-point object pseudo-labels (int32, −1 where the point has no segment) per scene id.
 
     Writes ``out_dir/matches.json``. ``executor`` (any ``concurrent.futures.Executor``) runs the
     matching tasks and registrations; without it a local process pool
     (:func:`selfseg.executor.make_executor`) with ``cfg.match.workers`` processes is used (everything in-process when ``workers`` ≤ 1).
+    ``match_cache``: a folder where the matching is kept and looked up (:func:`cached_match_all`).
     """
     own = executor is None and cfg.match.workers > 1
     ex = make_executor("local", workers=cfg.match.workers) if own else executor
     try:
-        return _make_pseudo_labels(scenes, cfg, Path(out_dir), ex, progress)
+        return _make_pseudo_labels(scenes, cfg, Path(out_dir), ex, progress,
+                                   None if match_cache is None else Path(match_cache))
     finally:
         if own:
             ex.shutdown()
 
 
+def match_key(graphs: Sequence[SceneGraph], cfg: MatchConfig) -> str:
+    """What a matching's result depends on, hashed: every scene graph (id, features' and edges' bytes, components)
+    and the MatchConfig but its worker count (which only spreads the same tasks)."""
+    h = hashlib.sha256(dumps_json({k: v for k, v in to_dict(cfg).items() if k != "workers"}, indent=None).encode())
+    for g in graphs:
+        h.update(g.scene_id.encode() + b"\0")
+        for a in (np.ascontiguousarray(g.features, np.float64), np.ascontiguousarray(g.edges, np.int64),
+                  *(np.ascontiguousarray(c, np.int64) for c in g.components)):
+            h.update(str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def cached_match_all(graphs: Sequence[SceneGraph], cfg: MatchConfig, cache: Path | None,
+                     executor: cf.Executor | None, progress: bool) -> tuple[list[PairMatch], bool]:
+    """(:func:`match_all`'s result, whether it came from ``cache``): read from ``cache`` (MATCH_CACHE_JSON) when a
+    matching of the same graphs and config is there, else computed and written there (None: no cache). A matching
+    that passes its budget raises as before and leaves nothing in the cache."""
+    path = None if cache is None else cache / MATCH_CACHE_JSON.format(key_hash=match_key(graphs, cfg))
+    if path is not None and path.is_file():
+        return [PairMatch.from_json(m) for m in read_json(path)["matches"]], True
+    matches = match_all(graphs, cfg, executor, progress)
+    if path is not None:
+        write_json(path, {"config": to_dict(cfg), "scenes": [g.scene_id for g in graphs],
+                          "matches": [m.to_json() for m in matches]})
+    return matches, False
+
+
 def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out_dir: Path,
-                        executor: cf.Executor | None, progress: bool) -> dict[str, np.ndarray]:
+                        executor: cf.Executor | None, progress: bool, match_cache: Path | None
+                        ) -> dict[str, np.ndarray]:
     ids = [s.scene_id for s in scenes]
     if len(set(ids)) != len(ids):
         raise ValueError("scene ids must be unique")
@@ -264,15 +299,16 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
     clouds = [segment_clouds(s, pc.max_points_per_node, pc.seed) for s in scenes]
     seconds = {"clouds_s": time.perf_counter() - t0}
     stats: dict = {}
+    cached = None  # whether the matching came from the match cache (None: no matching)
     if cfg.mode == "v4_registration_only":
         t0 = time.perf_counter()
         decisions = _v4_decisions(graphs, clouds, cfg, executor, progress)
         seconds["registration_s"] = time.perf_counter() - t0
     else:
         t0 = time.perf_counter()
-        matches = match_all(graphs, cfg.match, executor, progress)
+        matches, cached = cached_match_all(graphs, cfg.match, match_cache, executor, progress)
         seconds["matching_s"] = time.perf_counter() - t0
-        stats = match_stats(matches, cfg.match)
+        stats = match_stats(matches, cfg.match)  # of the matching as computed (its CPU too, when cached)
         if cfg.mode == "ours":
             t0 = time.perf_counter()
             decisions = prune_matches(matches, lambda s, seg: clouds[s][seg], pc, executor, progress)
@@ -301,5 +337,6 @@ def _make_pseudo_labels(scenes: Sequence[SceneData], cfg: PseudoLabelConfig, out
         "matches": [d.to_json(ids) for d in decisions],
     })
     write_json(out_dir / DIAGNOSTICS_JSON, {"mode": cfg.mode, **diagnostics(ids, graphs, stats, decisions, objects),
+                                            "matching_from_cache": cached,
                                             "timings_s": {k: round(v, 3) for k, v in seconds.items()}})
     return labels

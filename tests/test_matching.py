@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import itertools
+import json
 import os
 from concurrent.futures.process import BrokenProcessPool
 
@@ -245,6 +246,8 @@ def test_match_all_every_component_pair_both_directions():
             assert i in src.components[m.src_comp] and k in tgt.components[m.tgt_comp]
     stats = match_stats(serial, MatchConfig())
     assert stats["component_pairs"] == 24 and stats["time_limit_hits"] == 0 and stats["cpu_s"] > 0
+    # a PairMatch written as JSON reads back equal (the match cache's round trip)
+    assert [PairMatch.from_json(json.loads(json.dumps(m.to_json()))) for m in serial] == serial
     # a CPU budget it stays within changes nothing (its tasks then run in a budget-limited pool)
     budgeted = match_all(scenes, MatchConfig(workers=1, cpu_budget_per_pair_s=600.0), progress=False)
     assert [m.result.node_map for m in budgeted] == [m.result.node_map for m in serial]

@@ -110,6 +110,36 @@ def test_pseudo_labels_merge_the_object_only(scenes, mode, tmp_path):
         assert as_src == {"precision_recall"}  # a whole (isolated) component: registered, rejected
         assert as_tgt == {"no_mapped_edge"}  # a lone node pair could merge nothing: not registered
 
+@pytest.mark.slow
+def test_runs_that_differ_after_matching_match_once(scenes, tmp_path, monkeypatch):
+    """ours fills the match cache; V3 with the same graphs and MatchConfig reads it (match_all is not called) and
+    gives what V3 gives matching itself; another MatchConfig is another entry."""
+    from selfseg.method import pseudolabels
+    from selfseg.method.matching import MatchConfig
+
+    data, _ = scenes
+    cache = tmp_path / "cache"
+    make_pseudo_labels(data, PseudoLabelConfig(mode="ours"), tmp_path / "ours", progress=False, match_cache=cache)
+    assert len(list(cache.glob("matches-*.json"))) == 1
+    assert read_json(tmp_path / "ours/diagnostics.json")["matching_from_cache"] is False
+    alone = make_pseudo_labels(data, PseudoLabelConfig(mode="v3_no_pruning"), tmp_path / "alone", progress=False)
+
+    def no_matching(*args, **kwargs):
+        raise AssertionError("match_all ran although the cache holds this matching")
+
+    with monkeypatch.context() as m:
+        m.setattr(pseudolabels, "match_all", no_matching)
+        cached = make_pseudo_labels(data, PseudoLabelConfig(mode="v3_no_pruning"), tmp_path / "v3", progress=False,
+                                    match_cache=cache)
+        with pytest.raises(AssertionError, match="match_all ran"):  # other costs: not in the cache
+            make_pseudo_labels(data, PseudoLabelConfig(mode="v3_no_pruning", match=MatchConfig(c_del_node=0.2)),
+                               tmp_path / "other", progress=False, match_cache=cache)
+    assert read_json(tmp_path / "v3/diagnostics.json")["matching_from_cache"] is True
+    assert {k: v.tolist() for k, v in cached.items()} == {k: v.tolist() for k, v in alone.items()}
+    strip = lambda r: {k: v for k, v in r.items() if k != "match_stats"}  # noqa: E731 (timings differ)
+    assert strip(read_json(tmp_path / "v3/matches.json")) == strip(read_json(tmp_path / "alone/matches.json"))
+
+
 def decision(src_scene, tgt_scene, pairs, edges, rejected=()):
     return MatchDecision(src_scene, 0, tgt_scene, 0, dict(pairs), edges,
                          [NodeDecision(i, k, (i, k) not in rejected, "test") for i, k in pairs])

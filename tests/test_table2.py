@@ -9,12 +9,12 @@ from selfseg.analytic import make_dataset, two_box_scenes
 from selfseg.config import load_config
 from selfseg.dataset import Dataset
 from selfseg.eval.cli import evaluate3d_main as main
-from selfseg.eval.layout import FAILED_JSON, FRAMES_JSONL, SCORES_JSON, WORK_DIR
+from selfseg.eval.layout import FAILED_JSON, FRAMES_JSONL, SCORES_JSON, STAGES_DIR, WORK_DIR
 from selfseg.eval.leaderboard import main as build_leaderboards
 from selfseg.eval.points import evaluate_points
 from selfseg.eval.table2 import FOLD, ROWS, alignment, format_matching, run_table2, segment_scenes
 from selfseg.fileio import read_json
-from selfseg.method.pipeline import OursConfig
+from selfseg.method.pipeline import MATCH_CACHE_DIR, OursConfig
 from test_pipeline import FAST
 
 
@@ -51,6 +51,8 @@ def test_matching_on_ray_equals_local(tmp_path):
     pseudo = out / WORK_DIR.format(name="ours", dataset=ds.name, fold=FOLD) / "pseudo"
     matches_local = read_json(next(pseudo.rglob("matches.json")))
     shutil.rmtree(pseudo)  # φ1 and the per-video stages stay cached: only matching and pruning run again
+    for kept in (out / STAGES_DIR).glob(f"*/{MATCH_CACHE_DIR}"):
+        shutil.rmtree(kept)  # the matching too, or it would be read back
     tasks = []
     with make_executor("ray", workers=2) as ex:
         submit = ex.submit
