@@ -225,6 +225,17 @@ def _sandbox_env() -> dict[str, str]:
 
 
 # ---- the method's process: parent side -----------------------------------------------------------
+AUTOGROUP = "/proc/self/autogroup"  # Linux's scheduling group of a session: "/autogroup-N nice K"
+
+
+def autogroup_nice() -> int | None:
+    """The nice value of this process's scheduling autogroup (None where the kernel has no autogroups)."""
+    try:
+        return int(Path(AUTOGROUP).read_text().split()[-1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 @dataclass
 class Job:
     """What a method's process is asked to do: import ``ref.spec``, then call ``entry`` ("module:function",
@@ -234,6 +245,9 @@ class Job:
     entry: str
     payload: object
     guard: list[str] = field(default_factory=list)  # dataset paths whose ground truth selfseg.guard refuses
+    # The caller's: the method's process runs in a session of its own, which the kernel gives a new autogroup at
+    # nice 0, so without it a `nice`d evaluation's method would compete at full weight with everything else.
+    autogroup_nice: int | None = field(default_factory=autogroup_nice)
 
 
 def run_method_process(job: Job, mounts: list[Mount], forbidden: list[str | os.PathLike]) -> dict:
@@ -344,6 +358,9 @@ def child_main() -> None:
     from selfseg.registry import METHODS, import_method
 
     job: Job = pickle.load(sys.stdin.buffer)
+    if job.autogroup_nice:  # the caller's priority (lowering a nice needs a privilege: then it stays 0)
+        with contextlib.suppress(OSError):
+            Path(AUTOGROUP).write_text(str(job.autogroup_nice))
     reply_fd = os.dup(1)
     os.dup2(2, 1)
     os.dup2(os.open(os.devnull, os.O_RDONLY), 0)

@@ -703,3 +703,44 @@ def test_a_sandboxed_methods_cpu_time_reaches_the_caller(analytic_dataset, tmp_p
     assert rec["isolation"] == "sandbox"
     burned = float((tmp_path / WORK_DIR.format(name="burner", dataset="analytic", fold=0) / "cpu_s").read_text())
     assert burned >= 0.5 and cpu() - before >= burned
+
+
+PRIORITY = '''
+from pathlib import Path
+
+from selfseg.method_api import Method
+
+
+class Priority(Method):
+    """Writes the scheduling autogroup its process runs in to its work folder."""
+
+    name = "priority"
+
+    def fit(self, train_videos):
+        (self.workdir / "autogroup").write_text(Path("/proc/self/autogroup").read_text())
+
+    def segment(self, video, frame_id, fg_mask):
+        return fg_mask.astype(np.uint16)
+'''
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="the kernel has no scheduling autogroups")
+@pytest.mark.parametrize("sandboxed", [True, False], ids=["sandbox", "plain-process"])
+def test_a_niced_evaluation_keeps_its_method_niced(analytic_dataset, tmp_path, sandboxed):
+    """`evaluate` run from a session whose autogroup has nice 7: the method's process, in a session of its own
+    (a new autogroup, which the kernel starts at nice 0), runs at nice 7 too."""
+    (tmp_path / "prio.py").write_text("import numpy as np\n" + PRIORITY)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    if not sandboxed:
+        env[BWRAP_ENV] = NO_BWRAP
+    cmd = [sys.executable, "-c", "import sys; from selfseg.eval.cli import main; sys.exit(main())",
+           "--method", "prio:Priority", "--data", str(analytic_dataset), "--out", str(tmp_path / "out"), *ARGS,
+           *([] if sandboxed else ["--trust-method"])]
+    # the shell sets its new session's autogroup, then becomes the evaluator
+    subprocess.run(["sh", "-c", 'echo 7 > /proc/self/autogroup && exec "$@"', "sh", *cmd], env=env, check=True,
+                   start_new_session=True)
+    group = (tmp_path / "out" / WORK_DIR.format(name="priority", dataset="analytic", fold=0) / "autogroup").read_text()
+    assert group.split()[-2:] == ["nice", "7"], group
+    assert group.split()[0] != Path("/proc/self/autogroup").read_text().split()[0]  # not this test's group
+    rec = read_json(tmp_path / "out/scores/analytic/priority/fold0.json")
+    assert rec["isolation"] == ("sandbox" if sandboxed else "unsandboxed")
