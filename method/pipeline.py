@@ -13,7 +13,8 @@ Per set of training videos, also in the shared stage cache:
   segment features of its training videos (``features-<hash>/<vid>.npy``), shared by `ours` and the
   ablations that match with the same φ1.
 - ``matches/matches-<hash>.json``: the matching of those segment graphs under one MatchConfig (the hash covers
-  both), so that `ours` and V3, which differ only after it, match once.
+  both), so that `ours` and V3, which differ only after it, match once; run side by side, one waits for the
+  other's solve (``.matches-<hash>.lock``).
 
 Per fold, in the method's workdir (keyed by the settings and the training videos):
 

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from selfseg.config import to_dict
 from selfseg.executor import make_executor
-from selfseg.fileio import dumps_json, read_json, write_json
+from selfseg.fileio import dumps_json, exclusive_lock, read_json, write_json
 from selfseg.method.matching import MatchConfig, PairMatch, SceneGraph, cosine_distance, match_all, match_stats
 from selfseg.method.pruning import MatchDecision, NodeDecision, PruneConfig, prune_matches, register_clouds
 from selfseg.method.registration import precision_recall
@@ -49,6 +49,8 @@ MATCHES_JSON = "matches.json"  # every non-empty match: maps, J, T1, registratio
 # In a match cache folder (make_pseudo_labels' match_cache): match_all's result for one set of scene graphs and one
 # MatchConfig (its worker count aside), so that runs differing only after matching (ours, V3) match once
 MATCH_CACHE_JSON = "matches-{key_hash}.json"
+# held while one run computes that entry, so a run that needs the same matching at the same time waits and reads it
+MATCH_CACHE_LOCK = ".matches-{key_hash}.lock"
 DIAGNOSTICS_JSON = "diagnostics.json"  # what matching and pruning did, stage by stage (:func:`diagnostics`)
 # node-pair rejection reasons in the order pruning applies them (criterion 1, 2, 3)
 REJECTION_ORDER = ("cost_above_T1", "no_mapped_edge", "registration_failed", "precision_recall", "isolation")
@@ -269,13 +271,17 @@ def match_key(graphs: Sequence[SceneGraph], cfg: MatchConfig) -> str:
 def cached_match_all(graphs: Sequence[SceneGraph], cfg: MatchConfig, cache: Path | None,
                      executor: cf.Executor | None, progress: bool) -> tuple[list[PairMatch], bool]:
     """(:func:`match_all`'s result, whether it came from ``cache``): read from ``cache`` (MATCH_CACHE_JSON) when a
-    matching of the same graphs and config is there, else computed and written there (None: no cache). A matching
-    that passes its budget raises as before and leaves nothing in the cache."""
-    path = None if cache is None else cache / MATCH_CACHE_JSON.format(key_hash=match_key(graphs, cfg))
-    if path is not None and path.is_file():
-        return [PairMatch.from_json(m) for m in read_json(path)["matches"]], True
-    matches = match_all(graphs, cfg, executor, progress)
-    if path is not None:
+    matching of the same graphs and config is there, else computed and written there (None: no cache). While one
+    process computes an entry another that needs it waits for it (MATCH_CACHE_LOCK) rather than solving it twice. A
+    matching that passes its budget raises as before and leaves nothing in the cache."""
+    if cache is None:
+        return match_all(graphs, cfg, executor, progress), False
+    key = match_key(graphs, cfg)
+    path = cache / MATCH_CACHE_JSON.format(key_hash=key)
+    with exclusive_lock(cache / MATCH_CACHE_LOCK.format(key_hash=key), f"matching {key}", wait=True):
+        if path.is_file():
+            return [PairMatch.from_json(m) for m in read_json(path)["matches"]], True
+        matches = match_all(graphs, cfg, executor, progress)
         write_json(path, {"config": to_dict(cfg), "scenes": [g.scene_id for g in graphs],
                           "matches": [m.to_json() for m in matches]})
     return matches, False

@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -84,10 +85,11 @@ class BusyError(RuntimeError):
 
 
 @contextlib.contextmanager
-def exclusive_lock(path: str | os.PathLike, what: str) -> Iterator[None]:
-    """Hold an advisory lock (``flock``) on ``path`` for the block, writing this process's pid into it; raise
-    :class:`BusyError` naming ``what`` and the holder's pid at once if another process (or another open of the
-    file) holds it. The kernel drops the lock when its holder exits, so a killed run leaves no stale lock."""
+def exclusive_lock(path: str | os.PathLike, what: str, wait: bool = False) -> Iterator[None]:
+    """Hold an advisory lock (``flock``) on ``path`` for the block, writing this process's pid into it. If another
+    process (or another open of the file) holds it: raise :class:`BusyError` naming ``what`` and the holder's pid at
+    once, or with ``wait``, say so on stderr and block until the holder is done. The kernel drops the lock when its
+    holder exits, so a killed run leaves no stale lock."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
@@ -96,7 +98,12 @@ def exclusive_lock(path: str | os.PathLike, what: str) -> Iterator[None]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            raise BusyError(f"{what} is being run by process {holder} (lock {path}); wait for it to finish") from None
+            if not wait:
+                raise BusyError(f"{what} is being run by process {holder} (lock {path}); wait for it to finish") \
+                    from None
+            print(f"{what} is being run by process {holder} (lock {path}); waiting for it", file=sys.stderr,
+                  flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield

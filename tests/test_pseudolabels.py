@@ -174,3 +174,38 @@ def test_v4_registers_only_component_pairs_with_a_node_pair_at_the_cosine_thresh
     assert calls == []
     d = pseudolabels._v4_component_pair(*args, f, f, edges, edges, cfg)
     assert len(calls) == 1 and d is not None and [(p.src, p.tgt, p.accepted) for p in d.pairs] == [(0, 0, True)]
+
+
+def test_a_run_needing_a_matching_being_computed_waits_and_reads_it(tmp_path, capfd):
+    """While another process holds a match cache entry's lock (computing it), a run that needs the same matching
+    waits, then reads what that process wrote: it does not solve it a second time."""
+    import itertools
+    import threading
+
+    from selfseg.fileio import exclusive_lock, write_json
+    from selfseg.method.matching import MatchConfig, SceneGraph, match_all
+    from selfseg.method.pseudolabels import MATCH_CACHE_JSON, MATCH_CACHE_LOCK, cached_match_all, match_key
+
+    graphs = [SceneGraph(n, np.eye(3, 4) + k, np.array(list(itertools.combinations(range(3), 2))), [np.arange(3)])
+              for k, n in enumerate("ab")]
+    cfg = MatchConfig(workers=1)
+    key = match_key(graphs, cfg)
+    cache = tmp_path / "cache"
+    got = {}
+    with exclusive_lock(cache / MATCH_CACHE_LOCK.format(key_hash=key), "the test"):
+        waiter = threading.Thread(target=lambda: got.update(r=cached_match_all(graphs, cfg, cache, None, False)))
+        waiter.start()
+        for _ in range(200):  # until the waiter says it waits (it found the entry missing and the lock held)
+            if "waiting for it" in capfd.readouterr().err:
+                break
+            waiter.join(0.05)
+        else:
+            pytest.fail("the run did not wait for the lock's holder")
+        assert waiter.is_alive()
+        matches = match_all(graphs, cfg, None, False)
+        write_json(cache / MATCH_CACHE_JSON.format(key_hash=key),
+                   {"config": {}, "scenes": ["a", "b"], "matches": [m.to_json() for m in matches]})
+    waiter.join(60)
+    read, from_cache = got["r"]
+    assert from_cache is True
+    assert [m.to_json() for m in read] == [m.to_json() for m in matches]
