@@ -10,6 +10,11 @@
                                                                      # one seed's paired claims, with verdicts
     python -m selfseg.eval.confirm compare --results NEW --against OLD  # every run of both folders (the same data),
                                                                      # NEW − OLD: did a code change move a row?
+    python -m selfseg.eval.confirm archive --preset calibrated --runs runs/confirm [--noisy]
+                                                                     # the seeds' finished fold records, into
+                                                                     # leaderboards/results/ (to commit)
+    python -m selfseg.eval.confirm restore --preset calibrated --runs runs/confirm [--noisy]
+                                                                     # put them back on another machine
 
 A preset may be frozen again (``--freeze calibrated-2`` with each command): a change after a freeze is a new
 freeze on new seeds, reported beside the first, never instead of it.
@@ -36,6 +41,13 @@ holds only when its CI excludes 0. Table II per seed too.
 The section sits between its own markers in ``leaderboards/<preset>.md``, so the leaderboard builder
 (:mod:`selfseg.eval.leaderboard`) leaves it alone.
 
+**Archive.** A seed takes hours and a machine may not outlive a session. ``archive`` copies every finished fold
+record of the seeds' runs (``scores/``, ``failed/``, ``rejected/`` and ``timings.tsv``; never predictions or caches)
+into ``leaderboards/results/<name>-confirm/`` (``-noisy-confirm`` for ``--noisy``) with a README naming the runs
+and their fold counts only, so archiving reads no score. ``restore`` puts them back into a runs folder, where
+``KEEP_EARLIER=1 scripts/confirm.sh`` from a clean clone of the freeze keeps them and runs the rest; a kept fold
+counts only if the regenerated data has the content hash its record names.
+
 **Noise.** ``board --noisy-runs DIR`` adds the same fresh seeds of the preset's noisy variant (``<preset>-noisy``:
 the same scenes with the depth-noise model on; ``DIR/seed-<S>/results``, run from the freeze with its configs,
 so nothing is tuned on noise): each method's drop exact − noisy paired per test video, ``ours``'s claims under
@@ -52,14 +64,20 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from selfseg.eval.aggregate import fmt
+from selfseg.eval.layout import SCORES_DIR
 from selfseg.eval.leaderboard import load_failures, load_results, replace_generated
 from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
-from selfseg.fileio import FileFormatError, atomic_write_text, read_json, write_json
+from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 FREEZE_JSON = "leaderboards/{name}-freeze.json"  # a freeze's record, committed right after the freeze commit
 SEED_RUN_DIR = "seed-{seed}"  # one fresh seed's run folder (scripts/benchmark.sh RUN) under the runs folder
 SEED_RESULTS_DIR = SEED_RUN_DIR + "/results"
+SEED_TIMINGS_TSV = SEED_RUN_DIR + "/timings.tsv"  # scripts/benchmark.sh's steps; its last row is `total` once it ended
+ARCHIVE_DIR = "leaderboards/results/{name}-confirm"  # a freeze's archived seeds (each as SEED_RUN_DIR), committed
+NOISY_ARCHIVE_DIR = "leaderboards/results/{name}-noisy-confirm"  # the same for its noisy-depth rows
+ARCHIVE_README = SEED_RUN_DIR + "/README.md"  # what an archived seed holds (names and fold counts, no scores)
+ARCHIVED_DIRS = (SCORES_DIR, "failed", "rejected")  # the parts of a results folder that are records (layout.py)
 # Paths that may change after the freeze without making it a new one: what is published, not what computes it.
 UNFROZEN = ("leaderboards", "docs", "README.md")
 DEVELOPMENT_SEEDS = frozenset({0, 1, 7, 11})  # used while choosing settings (1: the disjoint-object training set)
@@ -417,6 +435,89 @@ def board(rec: dict, runs: Path, dev: list[tuple[str, Path]], out: Path, noisy_r
     return out
 
 
+def _records(results: Path) -> list[Path]:
+    """The finished fold records under a results folder, relative to it: each fold's JSON (scores, failure or
+    rejection) and its per-frame lines; a frame file whose fold JSON is not written yet is a fold still running."""
+    out = []
+    for top in ARCHIVED_DIRS:
+        for path in sorted((results / top).rglob("fold*.json")):
+            out.append(path.relative_to(results))
+            frames = path.with_name(path.name.removesuffix(".json") + ".frames.jsonl")
+            if frames.is_file():
+                out.append(frames.relative_to(results))
+    return out
+
+
+def _seed_readme(rec: dict, seed: int, results: Path, files: list[Path], timings: Path) -> str:
+    """An archived seed's README: its state, dataset and runs (names and fold counts; no score is read)."""
+    runs, hashes = {}, set()
+    for f in files:
+        if f.suffix == ".json":
+            r = read_json(results / f)
+            hashes.add(r.get("dataset", {}).get("content_hash", "?")[:16])
+            counts = runs.setdefault(f.parts[2], {})
+            counts[f.parts[0]] = counts.get(f.parts[0], 0) + 1
+    rows = timings.read_text().splitlines() if timings.is_file() else []
+    done = bool(rows) and rows[-1].startswith("total\t")
+    state = "**finished**" if done else "**not finished** (the run was cut off or is still going)"
+    listed = "; ".join(f"`{n}` " + ", ".join(f"{c[d]} {'scored' if d == SCORES_DIR else d}" for d in ARCHIVED_DIRS
+                                             if d in c) for n, c in sorted(runs.items()))
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return (f"Seed {seed} of the `{rec['name']}` freeze ({rec['commit'][:7]}), {state} when archived ({now}) by "
+            f"`python -m selfseg.eval.confirm archive`: the fold records of its run, copied from the run folder.\n"
+            f"Dataset content hash {', '.join(sorted(hashes)) or '(no record yet)'}. Records: {listed or 'none'}.\n"
+            f"To go on with it elsewhere: `confirm restore`, then `KEEP_EARLIER=1 scripts/confirm.sh` from a clean "
+            f"clone of the freeze (finished folds are kept where the regenerated data has the same content hash).\n"
+            f"Archiving reads names and fold counts only, no score.\n")
+
+
+def archive(rec: dict, runs: Path, dest: Path) -> list[str]:
+    """Copy the finished fold records of freeze ``rec``'s seeds under ``runs`` into ``dest`` (one folder per
+    seed, with a README); refuses to drop a record ``dest`` already holds that ``runs`` lacks (restore first).
+    Returns one line per seed archived."""
+    lines = []
+    for s in rec["seeds"]:
+        results = runs / SEED_RESULTS_DIR.format(seed=s)
+        if not results.is_dir():
+            continue
+        into = dest / SEED_RESULTS_DIR.format(seed=s)
+        files = _records(results)
+        kept = {p.relative_to(into) for p in into.rglob("fold*") if p.is_file()} if into.is_dir() else set()
+        lost = sorted(kept - set(files))
+        if lost:
+            raise FreezeError(f"{into / lost[0]}: archived but not in {results} ({len(lost)} such files); "
+                              f"run `confirm restore` into that runs folder first")
+        for f in files:
+            data = (results / f).read_bytes()
+            if not (into / f).is_file() or (into / f).read_bytes() != data:
+                atomic_write_bytes(into / f, data)
+        timings = runs / SEED_TIMINGS_TSV.format(seed=s)
+        if timings.is_file():
+            atomic_write_bytes(dest / SEED_TIMINGS_TSV.format(seed=s), timings.read_bytes())
+        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, results, files, timings))
+        lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in files)} fold records → {into}")
+    return lines
+
+
+def restore(rec: dict, src: Path, runs: Path) -> list[str]:
+    """Copy the archived fold records of freeze ``rec``'s seeds from ``src`` into ``runs`` (files already there
+    are left as they are: the runs folder is the newer). Returns one line per seed restored."""
+    lines = []
+    for s in rec["seeds"]:
+        archived = src / SEED_RESULTS_DIR.format(seed=s)
+        if not archived.is_dir():
+            continue
+        into = runs / SEED_RESULTS_DIR.format(seed=s)
+        new = [f for f in _records(archived) if not (into / f).exists()]
+        for f in new:
+            atomic_write_bytes(into / f, (archived / f).read_bytes())
+        timings = runs / SEED_TIMINGS_TSV.format(seed=s)
+        if not timings.exists() and (src / SEED_TIMINGS_TSV.format(seed=s)).is_file():
+            atomic_write_bytes(timings, (src / SEED_TIMINGS_TSV.format(seed=s)).read_bytes())
+        lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in new)} fold records restored → {into}")
+    return lines
+
+
 def compare_lines(results: Path, a: str, others: list[str]) -> list[str]:
     """``a`` − each of ``others`` on one results folder's test videos (one seed), as :func:`paired` reads it."""
     groups = _only_dataset(results)
@@ -461,17 +562,19 @@ def _dev_arg(text: str) -> tuple[str, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m selfseg.eval.confirm", description=__doc__.splitlines()[0])
-    p.add_argument("command", choices=("freeze", "seeds", "check", "board", "compare"))
+    p.add_argument("command", choices=("freeze", "seeds", "check", "board", "compare", "archive", "restore"))
     p.add_argument("--preset", default="calibrated")
     p.add_argument("--freeze", metavar="NAME", help="which freeze of the preset: the preset's name for the first "
                    "(default), <preset>-2 and so on for later ones")
     p.add_argument("--n-seeds", type=int, default=N_SEEDS, help="freeze: how many fresh seeds")
     p.add_argument("--runs", type=Path, default=Path("runs/confirm"),
-                   help="board: the folder holding each fresh seed's run (seed-<S>/results)")
+                   help="board, archive, restore: the folder holding each fresh seed's run (seed-<S>/results)")
     p.add_argument("--dev", type=_dev_arg, action="append", default=[], metavar="LABEL=RESULTS",
                    help="board: a development seed's results folder, shown beside the fresh seeds (repeatable)")
     p.add_argument("--noisy-runs", type=Path,
                    help="board: the same fresh seeds of the preset's noisy variant (seed-<S>/results), run from the freeze")
+    p.add_argument("--noisy", action="store_true", help="archive, restore: the runs are the noisy-depth rows "
+                   f"(scripts/confirm_noisy.sh; archived in {NOISY_ARCHIVE_DIR.format(name='<freeze>')})")
     p.add_argument("--out", type=Path, help="board: the leaderboard page (default leaderboards/<preset>.md)")
     p.add_argument("--results", type=Path, help="compare: one dataset's results folder (evaluate --out)")
     p.add_argument("--a", default="ours", help="compare: the run whose claims are tested (default ours)")
@@ -491,6 +594,11 @@ def main(argv: list[str] | None = None) -> int:
             print("\n".join(map(str, read_freeze(args.preset, args.freeze)["seeds"])))
         elif args.command == "check":
             check_checkout(read_freeze(args.preset, args.freeze))
+        elif args.command in ("archive", "restore"):
+            rec = read_freeze(args.preset, args.freeze)
+            dest = ROOT / (NOISY_ARCHIVE_DIR if args.noisy else ARCHIVE_DIR).format(name=rec["name"])
+            print("\n".join(archive(rec, args.runs, dest) if args.command == "archive" else restore(rec, dest, args.runs))
+                  or f"no seed of freeze {rec['name']} under {args.runs if args.command == 'archive' else dest}")
         elif args.command == "compare":
             print("\n".join(against_lines(args.results, args.against) if args.against
                              else compare_lines(args.results, args.a, args.b)))

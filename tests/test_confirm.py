@@ -1,4 +1,5 @@
 """The confirmation protocol: seeds follow the freeze commit, paired CIs, pooled seeds, frozen records only."""
+import shutil
 import subprocess
 
 import pytest
@@ -292,3 +293,39 @@ def test_a_preset_frozen_twice_keeps_both_records_and_spends_no_seed_twice(tmp_p
     assert read_freeze("analytic", "analytic-2")["seeds"] == second["seeds"]
     assert read_freeze("analytic")["seeds"] == first["seeds"]
     assert main(["seeds", "--preset", "analytic", "--freeze", "analytic-2"]) == 0
+
+
+def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, tmp_path):
+    """Archive copies each seed's finished fold records (not a fold still running) with a README of names and fold
+    counts only; restored into an empty runs folder they give the same board; an archive never drops a record."""
+    root, rec = runs
+    rec = {**rec, "name": "analytic"}
+    src = tmp_path / "runs"
+    shutil.copytree(root, src)
+    running = src / SEED_RESULTS_DIR.format(seed=101) / "scores/x/ours-v2/fold0.frames.jsonl"
+    running.parent.mkdir(parents=True)
+    running.write_text("{}\n")  # a fold whose JSON is not written yet
+    (src / "seed-101/timings.tsv").write_text("generate\t3\t3\t100\nours\t9\t9\t100\ntotal\t20\t\n")
+    dest = tmp_path / "archive"
+    lines = confirm.archive(rec, src, dest)
+    assert [line.split(":")[0] for line in lines] == ["seed 101", "seed 202"]
+    n = len(list((src / "seed-101/results/scores").rglob("fold*.json")))
+    assert n == 6 and len(list((dest / "seed-101/results/scores").rglob("fold*.json"))) == n
+    assert not (dest / "seed-101/results/scores/x").exists()
+    readme = (dest / "seed-101/README.md").read_text()
+    assert "**finished**" in readme and "`ours` 3 scored" in readme and "`depth-clustering` 3 scored" in readme
+    assert "1.000" not in readme and "IoU" not in readme  # names and counts, no score
+    assert "**not finished**" in (dest / "seed-202/README.md").read_text()  # no timings: cut off or still going
+    assert confirm.archive(rec, src, dest) == lines  # idempotent
+
+    fresh = tmp_path / "fresh"  # another machine: nothing but the archive
+    with pytest.raises(FreezeError, match="confirm restore"):
+        (fresh / "seed-101/results").mkdir(parents=True)
+        confirm.archive(rec, fresh, dest)
+    assert "6 fold records restored" in confirm.restore(rec, dest, fresh)[0]
+    assert (fresh / "seed-101/timings.tsv").read_text() == (src / "seed-101/timings.tsv").read_text()
+    a, b = tmp_path / "a.md", tmp_path / "b.md"
+    board(rec, src, [], a)
+    board(rec, fresh, [], b)
+    assert a.read_text() == b.read_text()
+    assert "0 fold records restored" in confirm.restore(rec, dest, fresh)[0]  # what is there stays
