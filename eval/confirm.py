@@ -72,8 +72,9 @@ from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_tex
 ROOT = Path(__file__).resolve().parents[1]
 FREEZE_JSON = "leaderboards/{name}-freeze.json"  # a freeze's record, committed right after the freeze commit
 SEED_RUN_DIR = "seed-{seed}"  # one fresh seed's run folder (scripts/benchmark.sh RUN) under the runs folder
-SEED_RESULTS_DIR = SEED_RUN_DIR + "/results"
-SEED_TIMINGS_TSV = SEED_RUN_DIR + "/timings.tsv"  # scripts/benchmark.sh's steps; its last row is `total` once it ended
+RUN_RESULTS_DIR = "results"  # in a seed's run folder: scripts/benchmark.sh's RESULTS (evaluate --out)
+RUN_TIMINGS_TSV = "timings.tsv"  # in a seed's run folder: scripts/benchmark.sh's steps, `total` last once it ended
+SEED_RESULTS_DIR = SEED_RUN_DIR + "/" + RUN_RESULTS_DIR
 ARCHIVE_DIR = "leaderboards/results/{name}-confirm"  # a freeze's archived seeds (each as SEED_RUN_DIR), committed
 NOISY_ARCHIVE_DIR = "leaderboards/results/{name}-noisy-confirm"  # the same for its noisy-depth rows
 ARCHIVE_README = SEED_RUN_DIR + "/README.md"  # what an archived seed holds (names and fold counts, no scores)
@@ -448,18 +449,18 @@ def _records(results: Path) -> list[Path]:
     return out
 
 
-def _seed_readme(rec: dict, seed: int, results: Path, files: list[Path], timings: Path) -> str:
+def _seed_readme(rec: dict, seed: int, run: Path) -> str:
     """An archived seed's README: its state, dataset and runs (names and fold counts; no score is read)."""
     runs, hashes = {}, set()
-    for f in files:
+    for f in _records(run / RUN_RESULTS_DIR):
         if f.suffix == ".json":
-            r = read_json(results / f)
-            hashes.add(r.get("dataset", {}).get("content_hash", "?")[:16])
-            counts = runs.setdefault(f.parts[2], {})
+            hashes.add(read_json(run / RUN_RESULTS_DIR / f).get("dataset", {}).get("content_hash", "?")[:16])
+            counts = runs.setdefault(f.parts[2], {})  # <top>/<dataset>/<name>/fold<k>.json
             counts[f.parts[0]] = counts.get(f.parts[0], 0) + 1
+    timings = run / RUN_TIMINGS_TSV
     rows = timings.read_text().splitlines() if timings.is_file() else []
-    done = bool(rows) and rows[-1].startswith("total\t")
-    state = "**finished**" if done else "**not finished** (the run was cut off or is still going)"
+    state = ("**finished**" if rows and rows[-1].startswith("total\t")
+             else "**not finished** (the run was cut off or is still going)")
     listed = "; ".join(f"`{n}` " + ", ".join(f"{c[d]} {'scored' if d == SCORES_DIR else d}" for d in ARCHIVED_DIRS
                                              if d in c) for n, c in sorted(runs.items()))
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -471,30 +472,40 @@ def _seed_readme(rec: dict, seed: int, results: Path, files: list[Path], timings
             f"Archiving reads names and fold counts only, no score.\n")
 
 
+def _copy(src: Path, dst: Path, paths: list[Path], replace: bool) -> list[Path]:
+    """Copy ``paths`` (relative, files that exist under ``src``) to ``dst``, each atomically: every one that
+    differs there when ``replace``, else only those ``dst`` lacks. Returns the paths written."""
+    written = []
+    for f in paths:
+        data = (src / f).read_bytes()
+        if not (dst / f).is_file() or (replace and (dst / f).read_bytes() != data):
+            atomic_write_bytes(dst / f, data)
+            written.append(f)
+    return written
+
+
+def _seed_files(run: Path) -> list[Path]:
+    """What is archived of one seed's run folder, relative to it: the fold records and the timings."""
+    records = [RUN_RESULTS_DIR / f for f in _records(run / RUN_RESULTS_DIR)]
+    return records + ([Path(RUN_TIMINGS_TSV)] if (run / RUN_TIMINGS_TSV).is_file() else [])
+
+
 def archive(rec: dict, runs: Path, dest: Path) -> list[str]:
     """Copy the finished fold records of freeze ``rec``'s seeds under ``runs`` into ``dest`` (one folder per
     seed, with a README); refuses to drop a record ``dest`` already holds that ``runs`` lacks (restore first).
     Returns one line per seed archived."""
     lines = []
     for s in rec["seeds"]:
-        results = runs / SEED_RESULTS_DIR.format(seed=s)
-        if not results.is_dir():
+        run, into = runs / SEED_RUN_DIR.format(seed=s), dest / SEED_RUN_DIR.format(seed=s)
+        if not (run / RUN_RESULTS_DIR).is_dir():
             continue
-        into = dest / SEED_RESULTS_DIR.format(seed=s)
-        files = _records(results)
-        kept = {p.relative_to(into) for p in into.rglob("fold*") if p.is_file()} if into.is_dir() else set()
-        lost = sorted(kept - set(files))
+        files = _seed_files(run)
+        lost = sorted(set(_seed_files(into)) - set(files))
         if lost:
-            raise FreezeError(f"{into / lost[0]}: archived but not in {results} ({len(lost)} such files); "
+            raise FreezeError(f"{into / lost[0]}: archived but not in {run} ({len(lost)} such files); "
                               f"run `confirm restore` into that runs folder first")
-        for f in files:
-            data = (results / f).read_bytes()
-            if not (into / f).is_file() or (into / f).read_bytes() != data:
-                atomic_write_bytes(into / f, data)
-        timings = runs / SEED_TIMINGS_TSV.format(seed=s)
-        if timings.is_file():
-            atomic_write_bytes(dest / SEED_TIMINGS_TSV.format(seed=s), timings.read_bytes())
-        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, results, files, timings))
+        _copy(run, into, files, replace=True)
+        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, run))
         lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in files)} fold records → {into}")
     return lines
 
@@ -504,17 +515,10 @@ def restore(rec: dict, src: Path, runs: Path) -> list[str]:
     are left as they are: the runs folder is the newer). Returns one line per seed restored."""
     lines = []
     for s in rec["seeds"]:
-        archived = src / SEED_RESULTS_DIR.format(seed=s)
-        if not archived.is_dir():
-            continue
-        into = runs / SEED_RESULTS_DIR.format(seed=s)
-        new = [f for f in _records(archived) if not (into / f).exists()]
-        for f in new:
-            atomic_write_bytes(into / f, (archived / f).read_bytes())
-        timings = runs / SEED_TIMINGS_TSV.format(seed=s)
-        if not timings.exists() and (src / SEED_TIMINGS_TSV.format(seed=s)).is_file():
-            atomic_write_bytes(timings, (src / SEED_TIMINGS_TSV.format(seed=s)).read_bytes())
-        lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in new)} fold records restored → {into}")
+        archived, into = src / SEED_RUN_DIR.format(seed=s), runs / SEED_RUN_DIR.format(seed=s)
+        if archived.is_dir():
+            new = _copy(archived, into, _seed_files(archived), replace=False)
+            lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in new)} fold records restored → {into}")
     return lines
 
 
