@@ -24,15 +24,15 @@ from tqdm import tqdm
 
 from selfseg.config import ConfigError, from_dict, to_dict
 from selfseg.dataset import (DATASET_INFO, DEPTH, MASK_INST, MODELS_DIR, MODELS_INFO, RGB, SCENE_CAMERA, SCENE_GT,
-                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, video_id_str)
+                             SCENE_INFO, VIDEO_DIR, VIDEOS_DIR, DatasetError, geometry_hash, is_rgb_frame,
+                             only_rgb_differs, video_id_str)
 from selfseg.executor import EXECUTORS, ExecutorError, check_shared_folder, executor_config, make_executor
 from selfseg.fileio import FileFormatError, hash_json, read_json, write_json
 from selfseg.generate.determinism import is_pinned, pinned_vars, reexec_pinned, start_environ
 from selfseg.generate.objects import write_models
 from selfseg.generate.presets import GENERATOR_VERSION, LIBRARIES, PRESETS, GenerateConfig, preset_config
 from selfseg.generate.scene import STAGES, generate_scene, load_library, orbit_step_deg
-from selfseg.manifest import (MANIFEST, differences, geometry_hash, is_rgb_frame, manifest_hash, only_rgb_differs,
-                             read_manifest, write_manifest)
+from selfseg.manifest import MANIFEST, differences, manifest_hash, read_manifest, write_manifest
 from selfseg.writers import write_dataset_info
 
 PROGRESS_FILE = ".generate.json"  # config of a generation in progress; removed when the dataset is complete
@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def verify_dataset(root: Path) -> int:
     """``--verify DIR``: one line; 0 if every file matches the manifest, 3 if only RGB frames differ (the class of
-    difference another CPU type gives: :mod:`selfseg.manifest`), 1 if anything else differs, 2 without a manifest."""
+    difference another CPU type gives: :func:`selfseg.dataset.only_rgb_differs`), 1 if anything else differs, 2 without a manifest."""
     try:
         stored, found = differences(root, full=True)
     except (FileNotFoundError, FileFormatError) as e:

@@ -19,7 +19,7 @@ Not pinned, because it cannot be: Cycles, Embree and OpenImageDenoise choose the
 so Cycles' RGB frames from CPUs of other types differ by 1 in a few 8-bit values per frame (measured: an
 AMD Zen 4 against an Intel Xeon with AVX-512 FP16 and against the machine of the first published tiny
 hash, PSNR 91–99 dB). Everything else, depth and masks included (Workbench), is the same bytes:
-:func:`selfseg.manifest.geometry_hash` is that part's identity.
+:func:`selfseg.dataset.geometry_hash` is that part's identity.
 """
 from __future__ import annotations
 

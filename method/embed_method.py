@@ -18,9 +18,8 @@ import numpy as np
 import torch
 
 from selfseg.config import to_dict
-from selfseg.dataset import Video
+from selfseg.dataset import Video, video_content_hash
 from selfseg.fileio import hash_json
-from selfseg.manifest import video_content_hash
 from selfseg.method.meanshift import MeanShiftConfig, cluster_frame, cluster_frames
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding

@@ -34,9 +34,8 @@ import numpy as np
 from tqdm import tqdm
 
 from selfseg.config import to_dict
-from selfseg.dataset import Video
+from selfseg.dataset import Video, video_content_hash
 from selfseg.fileio import hash_json, read_json, write_json
-from selfseg.manifest import video_content_hash
 from selfseg.method.background import BackgroundConfig, plane_pixels, remove_support_plane, up_hint_from_poses
 from selfseg.method.projection import foreground_mask
 from selfseg.method.reconstruct import ReconConfig, Volume, occupancy, reconstruct

@@ -27,6 +27,7 @@ sandbox where only the files they may read exist, :mod:`selfseg.eval.sandbox`).
 """
 from __future__ import annotations
 
+import fnmatch
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from selfseg.fileio import read_json
-from selfseg.manifest import content_hash
+from selfseg.manifest import content_hash, manifest_hash, scan
 from selfseg.poses import invert_T, rt_to_T
 
 FORMAT_VERSION = 1
@@ -338,3 +339,36 @@ class Dataset:
     def content_hash(self) -> str:
         """The dataset's identity: a hash of every file's size and content (:mod:`selfseg.manifest`)."""
         return content_hash(self.root)
+
+
+# ---- identities built on the manifest (selfseg.manifest) that depend on which file is what ---------------
+# RGB frames are the one part of a generated dataset that depends on the CPU: Cycles, Embree and
+# OpenImageDenoise choose their SIMD kernels by CPUID, and their last-bit float differences flip a few 8-bit
+# values per frame by 1 (PSNR above 90 dB between CPU types). Depth, masks, poses, cameras and meshes are
+# byte-identical on every x86-64 CPU measured: :func:`geometry_hash` is their identity, and
+# :func:`only_rgb_differs` tells a CPU-dependent RGB difference (from :func:`selfseg.manifest.differences`)
+# apart from any other.
+
+
+def is_rgb_frame(path: str) -> bool:
+    """Whether the manifest path (``/``-separated) is a video's RGB frame."""
+    return fnmatch.fnmatchcase(path, RGB_GLOB)
+
+
+def geometry_hash(files: dict[str, list]) -> str:
+    """The identity of a file listing without its RGB frames (depth, masks, poses, cameras, meshes,
+    records): the part of a generated dataset that is the same on every CPU (16 hex digits)."""
+    return manifest_hash({p: v for p, v in files.items() if not is_rgb_frame(p)})
+
+
+def only_rgb_differs(found: dict[str, str]) -> bool:
+    """Whether every difference of :func:`selfseg.manifest.differences` is a changed RGB frame (none missing or extra): the
+    class of difference rendering on another CPU type gives."""
+    return bool(found) and all(is_rgb_frame(p) and "differs" in k for p, k in found.items())
+
+
+def video_content_hash(video: Video) -> str:
+    """Identity of what a method reads of one :class:`Video` (its rgb/ and depth/ frames and
+    scene_camera.json), for stage and cache keys; cheap scan. Lists no folder, so ground truth stays unread."""
+    rels = [t.format(video_id=video.video_id, frame_id=f) for t in (RGB, DEPTH) for f in video.frame_ids]
+    return manifest_hash(scan(video.root, only=rels + [SCENE_CAMERA.format(video_id=video.video_id)]))

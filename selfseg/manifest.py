@@ -8,16 +8,11 @@ files' current listing, so any changed frame changes it. Digests are reused whil
 mtime and inode (a per-dataset cache under ``$SELFSEG_CACHE/stat``, default ``~/.cache/selfseg``), so the
 cheap check reads no file that did not change; :func:`verify` with ``full=True`` re-reads every byte.
 
-RGB frames are the one part of a generated dataset that depends on the CPU: Cycles, Embree and
-OpenImageDenoise choose their SIMD kernels by CPUID, and their last-bit float differences flip a few
-8-bit values per frame by 1 (PSNR above 90 dB between CPU types). Depth, masks, poses, cameras and
-meshes are byte-identical on every x86-64 CPU measured. :func:`geometry_hash` is the identity of
-everything but the RGB frames, and :func:`differences` tells a CPU-dependent RGB difference apart
-from any other.
+This module knows files, not the dataset's layout: the identities that depend on which file is what (the
+geometry hash without the CPU-dependent RGB frames, a video's content hash) are in :mod:`selfseg.dataset`.
 """
 from __future__ import annotations
 
-import fnmatch
 import hashlib
 import os
 from pathlib import Path
@@ -77,31 +72,9 @@ def manifest_hash(files: dict[str, list]) -> str:
     return hash_json(files, n=16)
 
 
-def is_rgb_frame(path: str) -> bool:
-    """Whether the manifest path (``/``-separated) is a video's RGB frame."""
-    from selfseg.dataset import RGB_GLOB  # selfseg.dataset imports this module
-
-    return fnmatch.fnmatchcase(path, RGB_GLOB)
-
-
-def geometry_hash(files: dict[str, list]) -> str:
-    """The identity of a file listing without its RGB frames (depth, masks, poses, cameras, meshes,
-    records): the part of a generated dataset that is the same on every CPU (16 hex digits)."""
-    return manifest_hash({p: v for p, v in files.items() if not is_rgb_frame(p)})
-
-
 def content_hash(root: str | os.PathLike) -> str:
     """The dataset's identity: :func:`manifest_hash` of its files as they are now (cheap scan)."""
     return manifest_hash(scan(root))
-
-
-def video_content_hash(video) -> str:
-    """Identity of what a method reads of one :class:`~selfseg.dataset.Video` (its rgb/ and depth/ frames and
-    scene_camera.json), for stage and cache keys; cheap scan. Lists no folder, so ground truth stays unread."""
-    from selfseg.dataset import DEPTH, RGB, SCENE_CAMERA  # selfseg.dataset imports this module
-
-    rels = [t.format(video_id=video.video_id, frame_id=f) for t in (RGB, DEPTH) for f in video.frame_ids]
-    return manifest_hash(scan(video.root, only=rels + [SCENE_CAMERA.format(video_id=video.video_id)]))
 
 
 def write_manifest(root: str | os.PathLike) -> str:
@@ -132,12 +105,6 @@ def differences(root: str | os.PathLike, full: bool = True) -> tuple[dict[str, l
     found |= {p: f"{'size' if stored[p][0] != now[p][0] else 'content'} differs from the manifest"
               for p in stored if p in now and stored[p] != now[p]}
     return stored, dict(sorted(found.items()))
-
-
-def only_rgb_differs(found: dict[str, str]) -> bool:
-    """Whether every difference of :func:`differences` is a changed RGB frame (none missing or extra): the
-    class of difference rendering on another CPU type gives."""
-    return bool(found) and all(is_rgb_frame(p) and "differs" in k for p, k in found.items())
 
 
 def verify(root: str | os.PathLike, full: bool = True) -> tuple[str, list[str]]:

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from selfseg.dataset import geometry_hash
 from selfseg.generate.determinism import pinned_env
-from selfseg.manifest import geometry_hash, read_manifest
+from selfseg.manifest import read_manifest
 
 NO_FMA = {"GLIBC_TUNABLES": "glibc.cpu.hwcaps=-FMA"}
 # The tiny preset's geometry hash (every file but the RGB frames) with Workbench images, as the `generate_scenes`

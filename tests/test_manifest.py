@@ -6,10 +6,10 @@ import shutil
 
 import pytest
 
-from selfseg.dataset import Dataset
+from selfseg.dataset import Dataset, geometry_hash
 from selfseg.generate.cli import main as generate_scenes
 from selfseg.fileio import hash_json
-from selfseg.manifest import MANIFEST, content_hash, geometry_hash, read_manifest, verify, write_manifest
+from selfseg.manifest import MANIFEST, content_hash, read_manifest, verify, write_manifest
 
 
 @pytest.fixture
