@@ -64,7 +64,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from selfseg.eval.aggregate import fmt
-from selfseg.eval.layout import SCORES_DIR
+from selfseg.eval.layout import FAILED_DIR, REJECTED_DIR, SCORES_DIR
 from selfseg.eval.leaderboard import load_failures, load_results, replace_generated
 from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, read_json, write_json
@@ -78,7 +78,7 @@ SEED_RESULTS_DIR = SEED_RUN_DIR + "/" + RUN_RESULTS_DIR
 ARCHIVE_DIR = "leaderboards/results/{name}-confirm"  # a freeze's archived seeds (each as SEED_RUN_DIR), committed
 NOISY_ARCHIVE_DIR = "leaderboards/results/{name}-noisy-confirm"  # the same for its noisy-depth rows
 ARCHIVE_README = SEED_RUN_DIR + "/README.md"  # what an archived seed holds (names and fold counts, no scores)
-ARCHIVED_DIRS = (SCORES_DIR, "failed", "rejected")  # the parts of a results folder that are records (layout.py)
+ARCHIVED_DIRS = (SCORES_DIR, FAILED_DIR, REJECTED_DIR)  # the parts of a results folder that are fold records
 # Paths that may change after the freeze without making it a new one: what is published, not what computes it.
 UNFROZEN = ("leaderboards", "docs", "README.md")
 DEVELOPMENT_SEEDS = frozenset({0, 1, 7, 11})  # used while choosing settings (1: the disjoint-object training set)
