@@ -23,3 +23,24 @@ def test_a_checkout_that_is_not_the_freeze_runs_nothing(tmp_path):
     assert r.returncode == 2 and "that is a new freeze" in r.stderr and "seed" not in r.stdout
     assert list((tmp_path / "runs").iterdir()) == []
     assert _run(ROOT).returncode == 2  # usage
+
+
+RESUME = ROOT / "scripts" / "confirm_resume.sh"
+
+
+def test_resume_restores_the_archive_and_runs_nothing_from_a_checkout_that_is_not_the_freeze(tmp_path):
+    """scripts/confirm_resume.sh with this checkout as the clone: the first calibrated freeze's archived fold
+    records come back into RUNS, then the freeze check refuses the checkout (its code moved) and nothing starts."""
+    r = subprocess.run(["bash", str(RESUME), "calibrated", "calibrated", str(ROOT), str(tmp_path / "runs")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "that is a new freeze" in r.stderr
+    archived = ROOT / "leaderboards/results/calibrated-confirm"
+    for seed in sorted(archived.glob("seed-*")):
+        want = sorted(p.relative_to(archived) for p in seed.glob("results/scores/*/*/fold*.json"))
+        got = sorted(p.relative_to(tmp_path / "runs") for p in (tmp_path / "runs" / seed.name).rglob("fold*.json"))
+        assert want and got == want
+    assert not (tmp_path / "runs" / "confirm.log").exists()  # nothing was started
+    r = subprocess.run(["bash", str(RESUME), "calibrated", "calibrated-9", str(tmp_path / "c"), str(tmp_path / "r")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "calibrated-9-freeze.json: no such freeze record" in r.stderr
+    assert not (tmp_path / "c").exists()
