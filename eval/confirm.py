@@ -467,8 +467,8 @@ def _seed_readme(rec: dict, seed: int, run: Path) -> str:
     return (f"Seed {seed} of the `{rec['name']}` freeze ({rec['commit'][:7]}), {state} when archived ({now}) by "
             f"`python -m selfseg.eval.confirm archive`: the fold records of its run, copied from the run folder.\n"
             f"Dataset content hash {', '.join(sorted(hashes)) or '(no record yet)'}. Records: {listed or 'none'}.\n"
-            f"To go on with it elsewhere: `confirm restore`, then `KEEP_EARLIER=1 scripts/confirm.sh` from a clean "
-            f"clone of the freeze (finished folds are kept where the regenerated data has the same content hash).\n"
+            f"To go on with it on another machine: `scripts/confirm_resume.sh {rec['preset']} {rec['name']} CLONE RUNS` "
+            f"(restores these records and keeps them where the regenerated data has the same content hash).\n"
             f"Archiving reads names and fold counts only, no score.\n")
 
 
