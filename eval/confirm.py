@@ -449,7 +449,7 @@ def _records(results: Path) -> list[Path]:
     return out
 
 
-def _seed_readme(rec: dict, seed: int, run: Path) -> str:
+def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool) -> str:
     """An archived seed's README: its state, dataset and runs (names and fold counts; no score is read)."""
     runs, hashes = {}, set()
     for f in _records(run / RUN_RESULTS_DIR):
@@ -467,7 +467,7 @@ def _seed_readme(rec: dict, seed: int, run: Path) -> str:
     return (f"Seed {seed} of the `{rec['name']}` freeze ({rec['commit'][:7]}), {state} when archived ({now}) by "
             f"`python -m selfseg.eval.confirm archive`: the fold records of its run, copied from the run folder.\n"
             f"Dataset content hash {', '.join(sorted(hashes)) or '(no record yet)'}. Records: {listed or 'none'}.\n"
-            f"To go on with it on another machine: `scripts/confirm_resume.sh {rec['preset']} {rec['name']} CLONE RUNS` "
+            f"To go on with it on another machine: `{'NOISY=1 ' if noisy else ''}scripts/confirm_resume.sh {rec['preset']} {rec['name']} CLONE RUNS` "
             f"(restores these records and keeps them where the regenerated data has the same content hash).\n"
             f"Archiving reads names and fold counts only, no score.\n")
 
@@ -490,9 +490,9 @@ def _seed_files(run: Path) -> list[Path]:
     return records + ([Path(RUN_TIMINGS_TSV)] if (run / RUN_TIMINGS_TSV).is_file() else [])
 
 
-def archive(rec: dict, runs: Path, dest: Path) -> list[str]:
-    """Copy the finished fold records of freeze ``rec``'s seeds under ``runs`` into ``dest`` (one folder per
-    seed, with a README); refuses to drop a record ``dest`` already holds that ``runs`` lacks (restore first).
+def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]:
+    """Copy the finished fold records of freeze ``rec``'s seeds under ``runs`` (``noisy``: its noisy-depth rows) into
+    ``dest`` (one folder per seed, with a README); refuses to drop a record ``dest`` already holds that ``runs`` lacks (restore first).
     Returns one line per seed archived."""
     lines = []
     for s in rec["seeds"]:
@@ -505,7 +505,7 @@ def archive(rec: dict, runs: Path, dest: Path) -> list[str]:
             raise FreezeError(f"{into / lost[0]}: archived but not in {run} ({len(lost)} such files); "
                               f"run `confirm restore` into that runs folder first")
         _copy(run, into, files, replace=True)
-        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, run))
+        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, run, noisy))
         lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in files)} fold records → {into}")
     return lines
 
@@ -601,7 +601,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command in ("archive", "restore"):
             rec = read_freeze(args.preset, args.freeze)
             dest = ROOT / (NOISY_ARCHIVE_DIR if args.noisy else ARCHIVE_DIR).format(name=rec["name"])
-            print("\n".join(archive(rec, args.runs, dest) if args.command == "archive" else restore(rec, dest, args.runs))
+            print("\n".join(archive(rec, args.runs, dest, args.noisy) if args.command == "archive" else restore(rec, dest, args.runs))
                   or f"no seed of freeze {rec['name']} under {args.runs if args.command == 'archive' else dest}")
         elif args.command == "compare":
             print("\n".join(against_lines(args.results, args.against) if args.against
