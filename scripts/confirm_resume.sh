@@ -19,14 +19,14 @@ if [ ! -d "$CLONE/.git" ]; then
   git clone -q "$HERE" "$CLONE"
   git -C "$CLONE" checkout -q "$AT"
 fi
-make -C "$CLONE" install > "$CLONE/.install.log" 2>&1 ||
-  { echo "scripts/confirm_resume.sh: make install failed in $CLONE (see $CLONE/.install.log)" >&2; exit 1; }
+mkdir -p "$RUNS"
+make -C "$CLONE" install > "$RUNS/install.log" 2>&1 ||  # the clone stays clean: a frozen checkout may hold nothing new
+  { echo "scripts/confirm_resume.sh: make install failed in $CLONE (see $RUNS/install.log)" >&2; exit 1; }
 # a first freeze goes without --freeze / FREEZE=, as its own (older) scripts expect
 FZ=() FZ_ENV=(); [ "$FREEZE" != "$PRESET" ] && FZ=(--freeze "$FREEZE") FZ_ENV=(FREEZE="$FREEZE")
 NOISY_ARG=(); [ "${NOISY:-0}" = 1 ] && NOISY_ARG=(--noisy)
 "$HERE/.venv/bin/python" -m selfseg.eval.confirm restore --preset "$PRESET" "${FZ[@]}" --runs "$RUNS" "${NOISY_ARG[@]}"
 "$CLONE/.venv/bin/python" -m selfseg.eval.confirm check --preset "$PRESET" "${FZ[@]}"
-mkdir -p "$RUNS"
 LOG=$RUNS/confirm.log
 if [ "${NOISY:-0}" = 1 ]; then
   env "${FZ_ENV[@]}" setsid nohup "$HERE/scripts/confirm_noisy.sh" "$CLONE" "$RUNS" "$PRESET" >> "$LOG" 2>&1 < /dev/null &

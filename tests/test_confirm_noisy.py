@@ -28,9 +28,16 @@ def test_a_checkout_that_is_not_the_freeze_runs_nothing(tmp_path):
 RESUME = ROOT / "scripts" / "confirm_resume.sh"
 
 
+def _status() -> str:
+    """This checkout's git status, untracked files included."""
+    return subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=all"],
+                          capture_output=True, text=True, check=True).stdout
+
+
 def test_resume_restores_the_archive_and_runs_nothing_from_a_checkout_that_is_not_the_freeze(tmp_path):
     """scripts/confirm_resume.sh with this checkout as the clone: the first calibrated freeze's archived fold
     records come back into RUNS, then the freeze check refuses the checkout (its code moved) and nothing starts."""
+    before = _status()
     r = subprocess.run(["bash", str(RESUME), "calibrated", "calibrated", str(ROOT), str(tmp_path / "runs")],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "that is a new freeze" in r.stderr
@@ -40,6 +47,7 @@ def test_resume_restores_the_archive_and_runs_nothing_from_a_checkout_that_is_no
         got = sorted(p.relative_to(tmp_path / "runs") for p in (tmp_path / "runs" / seed.name).rglob("fold*.json"))
         assert want and got == want
     assert not (tmp_path / "runs" / "confirm.log").exists()  # nothing was started
+    assert _status() == before  # nothing written into the clone (a frozen checkout must stay clean)
     r = subprocess.run(["bash", str(RESUME), "calibrated", "calibrated-9", str(tmp_path / "c"), str(tmp_path / "r")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "calibrated-9-freeze.json: no such freeze record" in r.stderr
