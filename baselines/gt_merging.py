@@ -50,6 +50,7 @@ class OursGTMerging(Ours):
             m = read_label_map(cache.path("overseg", video.video_id) / SEGMAPS_DIR / LABEL_MAP_PNG.format(frame_id=fid))
             return relabel(m, groups[video.video_id]).astype(np.int32)
 
-        source = FrameLabelSource([(v, f, load) for v in train_videos for f in self.training_frames(v)])
+        source = FrameLabelSource([(v, f, load) for v in train_videos for f in self.training_frames(v)],
+                                  geometry=self.config.net.geometry)
         return source, {"gt_merging": [cache.key_hash("overseg", v.video_id) for v in train_videos],
                         "groups": {k: g.tolist() for k, g in groups.items()}}

@@ -21,6 +21,7 @@ from selfseg.dataset import Dataset, DatasetError, Video
 from selfseg.fileio import hash_json
 from selfseg.method.train import OptimSchedule
 from selfseg.method_api import Method
+from selfseg.raycast import xyz_map
 
 SHARED_TRAIN_DIR = "{method}-{key_hash:.12}"  # beside the fold folders: a method's networks trained on train_data
 
@@ -65,14 +66,6 @@ def train_data_record(ds: Dataset) -> dict:
     """What a run's provenance records of its training dataset."""
     return {"name": ds.name, "root": str(ds.root.resolve()), "content_hash": ds.content_hash(),
             "n_videos": len(ds.video_ids), "objects": sorted(object_names(ds))}
-
-
-def xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Organised point map: depth (m, H×W) → camera-frame XYZ H×W×3 float32 (m), zeros where depth is 0."""
-    h, w = depth_m.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    z = depth_m.astype(np.float32)
-    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).astype(np.float32)
 
 
 class GTFrames:

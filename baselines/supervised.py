@@ -64,7 +64,8 @@ def gt_label_source(method: EmbeddingMethodBase, videos: list[LabeledVideo]) -> 
             object_lookup(v)  # refuse a scene with two instances of one object before training starts
     loader = gt_object_labels if global_ids else gt_labels
     items = [(v, f, loader) for v in videos for f in method.training_frames(v)]
-    return FrameLabelSource(items, global_ids=global_ids), [video_key(v) for v in videos]
+    return FrameLabelSource(items, global_ids=global_ids, geometry=method.config.net.geometry), \
+        [video_key(v) for v in videos]
 
 
 class SupervisedMethod(EmbeddingMethodBase):

@@ -28,12 +28,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from selfseg.baselines.semantic_instances import finished, save_final, train_loop
-from selfseg.baselines.sim_data import GTFrames, SimSchedule, SimTrainedMethod, xyz_map
+from selfseg.baselines.sim_data import GTFrames, SimSchedule, SimTrainedMethod
 from selfseg.dataset import Video
 from selfseg.method.features import foreground_box
 from selfseg.method.meanshift import absorb_small, split_components
 from selfseg.method.network import RGB_MEAN, RGB_STD, EmbeddingNet, NetConfig
 from selfseg.method.train import WEIGHTS, begin_training
+from selfseg.raycast import xyz_map
 
 # Settings read only at test time: changing them reuses the trained networks.
 TEST_TIME_FIELDS = ("sigma_m", "n_seeds", "max_points", "meanshift_iters", "merge_m", "min_instance_px",

@@ -37,6 +37,7 @@ from selfseg.guard import ground_truth_forbidden
 from selfseg.importers import IMAGE_EXTS, image_files, read_intrinsics
 from selfseg.library_log import run_log, summary
 from selfseg.method.background import frame_foreground
+from selfseg.method.features import input_frame
 from selfseg.method.pipeline import Ours
 from selfseg.registry import UnknownMethodError, get_method_class
 from selfseg.writers import write_inst, write_rgb
@@ -128,9 +129,14 @@ def load_model(model_dir: Path):
     return m
 
 
-def segment_frame(method, rgb: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
-    """uint16 H×W instance map of one frame, as ``method.segment`` computes it in ``evaluate`` (on a GPU too)."""
-    return method.segment_rgb(rgb, fg_mask).astype(np.uint16)
+def segment_frame(method, rgb: np.ndarray, fg_mask: np.ndarray, depth_m: np.ndarray | None = None,
+                  K: np.ndarray | None = None) -> np.ndarray:
+    """uint16 H×W instance map of one frame, as ``method.segment`` computes it in ``evaluate`` (on a GPU too); a
+    network with geometry input needs the frame's depth (m) and ``K``."""
+    geometry = method.config.net.geometry
+    if geometry and (depth_m is None or K is None):
+        raise ConfigError(f"model of {method.name!r} reads depth and normals: pass --depth and --intrinsics")
+    return method.segment_frame(input_frame(rgb, depth_m, K, geometry), fg_mask).astype(np.uint16)
 
 
 def preview(rgb: np.ndarray, inst: np.ndarray) -> np.ndarray:
@@ -200,7 +206,7 @@ def run_segment(args: argparse.Namespace) -> int:
         if K is not None:
             validate_K(K, rgb.shape[1], rgb.shape[0], str(args.intrinsics))
         fg = _foreground(args.foreground, fg_p, rgb, depth, K, method, stem)
-        inst = segment_frame(method, rgb, fg)
+        inst = segment_frame(method, rgb, fg, depth, K)
         write_inst(out_p, inst)
         if args.preview:
             _write_preview(out_p.parent / "preview" / out_p.name if folder else out_p.with_suffix(".preview.png"),

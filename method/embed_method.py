@@ -20,6 +20,7 @@ import torch
 from selfseg.config import to_dict
 from selfseg.dataset import Video, video_content_hash
 from selfseg.fileio import hash_json
+from selfseg.method.features import embed_frames, foreground_box, video_frame
 from selfseg.method.meanshift import MeanShiftConfig, cluster_frame, cluster_frames
 from selfseg.method.network import EmbeddingNet, NetConfig
 from selfseg.method.train import LabelSource, TrainConfig, load_embedding_net, resolve_device, train_embedding
@@ -91,24 +92,23 @@ class EmbeddingMethodBase(Method):
         self._net = load_embedding_net(weights_path, self._device)
         self.weights_path = Path(weights_path)
 
-    def embed(self, rgb: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:
-        """uint8 H×W×3 → float32 D×H×W unit embeddings (the network runs at the training scale; with
+    def embed(self, frame: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:
+        """Input frame (uint8 H×W×3 RGB, or with ``net.geometry`` :func:`~selfseg.method.features.input_frame`'s) →
+        float32 D×H×W unit embeddings (the network runs at the training scale; with
         ``train.fg_crop``, inside the foreground box of ``fg_mask`` and zero outside it; with
         ``train.mask_background``, on the frame with everything outside ``fg_mask`` masked out; with ``test_flip``,
         averaged with the mirror image's embeddings)."""
-        return self._embed([rgb], None if fg_mask is None else [fg_mask])[0].cpu().numpy()
+        return self._embed([frame], None if fg_mask is None else [fg_mask])[0].cpu().numpy()
 
-    def _embed(self, rgbs: list[np.ndarray], fg_masks: list[np.ndarray] | None) -> torch.Tensor:
+    def _embed(self, frames: list[np.ndarray], fg_masks: list[np.ndarray] | None) -> torch.Tensor:
         """B×D×H×W float32 embeddings of same-size frames, on the method's device (as :meth:`embed`)."""
-        from selfseg.method.features import embed_frames, foreground_box
-
         if self._net is None:
             raise RuntimeError(f"method {self.name!r} has no trained network: call fit() or load() first")
         train = self.network_train_config()
         boxes = None if train.crop_margin is None or fg_masks is None else \
             [foreground_box(m, train.crop_margin) for m in fg_masks]
         masks = fg_masks if train.mask_background else None
-        return embed_frames(self._net, rgbs, self._device, train.image_size, boxes, masks,
+        return embed_frames(self._net, frames, self._device, train.image_size, boxes, masks,
                             self.config.test_flip, self.config.test_square_crop).float()
 
     def network_train_config(self) -> TrainConfig:
@@ -116,12 +116,12 @@ class EmbeddingMethodBase(Method):
         return self.config.train
 
     def segment(self, video: Video, frame_id: int, fg_mask: np.ndarray) -> np.ndarray:
-        return self.segment_rgb(video.rgb(frame_id), fg_mask)
+        return self.segment_frame(video_frame(video, frame_id, self.config.net.geometry), fg_mask)
 
-    def segment_rgb(self, rgb: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
-        """int32 H×W instance map of a uint8 H×W×3 frame (0 = background): embeddings, then the clustering on the
-        method's device (numpy on the CPU)."""
-        emb = self._embed([rgb], [fg_mask])[0]
+    def segment_frame(self, frame: np.ndarray, fg_mask: np.ndarray) -> np.ndarray:
+        """int32 H×W instance map of an input frame (as :meth:`embed` takes; 0 = background): embeddings, then the
+        clustering on the method's device (numpy on the CPU)."""
+        emb = self._embed([frame], [fg_mask])[0]
         return cluster_frame(emb.cpu().numpy() if self._device.type == "cpu" else emb, fg_mask, self.config.cluster)
 
     def segment_video(self, video: Video, frame_ids: list[int],
@@ -133,6 +133,6 @@ class EmbeddingMethodBase(Method):
         for start in range(0, len(frame_ids), GPU_BATCH):
             fids = frame_ids[start:start + GPU_BATCH]
             masks = [fg_masks[f] for f in fids]
-            embs = self._embed([video.rgb(f) for f in fids], masks)
+            embs = self._embed([video_frame(video, f, self.config.net.geometry) for f in fids], masks)
             out.update(zip(fids, cluster_frames(embs, masks, self.config.cluster)))
         return out

@@ -16,6 +16,9 @@ from torch import nn
 ENCODER_BLOCKS = {"resnet18": (2, 2, 2, 2), "resnet34": (3, 4, 6, 3)}
 RGB_MEAN = (0.485, 0.456, 0.406)
 RGB_STD = (0.229, 0.224, 0.225)
+# [selfseg] input channels after RGB with ``NetConfig.geometry``: the camera-frame unit normal (x, y, z) and the depth
+# about the frame's median (features.input_frame); they enter the network as they are, 0 where unknown or masked.
+GEOMETRY_CHANNELS = 4
 
 
 @dataclass
@@ -30,6 +33,13 @@ class NetConfig:
     aspp_channels: int = 256
     low_level_channels: int = 48
     decoder_channels: int = 256
+    # [selfseg] geometry beside RGB in the input (GEOMETRY_CHANNELS more); False is the paper's φ, which sees RGB only
+    geometry: bool = False
+
+    @property
+    def in_channels(self) -> int:
+        """Channels of the network's input: RGB, then the geometry channels if ``geometry``."""
+        return 3 + GEOMETRY_CHANNELS * self.geometry
 
     def __post_init__(self):
         if self.encoder not in ENCODER_BLOCKS:
@@ -82,9 +92,9 @@ class BasicBlock(nn.Module):
 class ResNetEncoder(nn.Module):
     """Returns (stride-4 low-level features, deep features at ``output_stride``)."""
 
-    def __init__(self, blocks: tuple[int, ...], width: int, output_stride: int):
+    def __init__(self, blocks: tuple[int, ...], width: int, output_stride: int, in_channels: int = 3):
         super().__init__()
-        self.stem = nn.Sequential(nn.Conv2d(3, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width),
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width),
                                   nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
         chans = [width, width * 2, width * 4, width * 8]
         dilated = {16: (False, False, True), 8: (False, True, True)}[output_stride]
@@ -124,13 +134,14 @@ class ASPP(nn.Module):
 class EmbeddingNet(nn.Module):
     """DeepLabV3+ with a ``embed_dim``-channel embedding head.
 
-    forward(rgb: B×3×H×W float in [0, 1]) → B×D×H×W, unit L2 norm at every pixel.
+    forward(x: B×C×H×W float: RGB in [0, 1], then with ``cfg.geometry`` the geometry channels) → B×D×H×W, unit L2
+    norm at every pixel.
     """
 
     def __init__(self, cfg: NetConfig | None = None):
         super().__init__()
         self.cfg = cfg = cfg if cfg is not None else NetConfig()
-        self.encoder = ResNetEncoder(ENCODER_BLOCKS[cfg.encoder], cfg.width, cfg.output_stride)
+        self.encoder = ResNetEncoder(ENCODER_BLOCKS[cfg.encoder], cfg.width, cfg.output_stride, cfg.in_channels)
         self.aspp = ASPP(self.encoder.out_channels, cfg.aspp_channels, tuple(cfg.aspp_rates))
         self.low_proj = _conv_bn_relu(self.encoder.low_channels, cfg.low_level_channels, 1)
         self.decoder = nn.Sequential(_conv_bn_relu(cfg.aspp_channels + cfg.low_level_channels, cfg.decoder_channels),
@@ -142,17 +153,20 @@ class EmbeddingNet(nn.Module):
             if isinstance(m, nn.Conv2d) and m is not self.head:
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
 
-    def forward_stride4(self, rgb: torch.Tensor) -> torch.Tensor:
+    def forward_stride4(self, x: torch.Tensor) -> torch.Tensor:
         """Unnormalised embeddings at stride 4: B×D×ceil(H/4)×ceil(W/4)."""
-        if rgb.ndim != 4 or rgb.shape[1] != 3:
-            raise ValueError(f"expected B×3×H×W RGB in [0, 1], got shape {tuple(rgb.shape)}")
-        low, deep = self.encoder((rgb - self.mean) / self.std)
+        c = self.cfg.in_channels
+        if x.ndim != 4 or x.shape[1] != c:
+            raise ValueError(f"expected B×{c}×H×W input (RGB in [0, 1]{', then geometry' if c > 3 else ''}), "
+                             f"got shape {tuple(x.shape)}")
+        z = (x - self.mean) / self.std if c == 3 else torch.cat([(x[:, :3] - self.mean) / self.std, x[:, 3:]], 1)
+        low, deep = self.encoder(z)
         deep = F.interpolate(self.aspp(deep), size=low.shape[2:], mode="bilinear", align_corners=False)
         return self.head(self.decoder(torch.cat([deep, self.low_proj(low)], 1)))
 
-    def forward(self, rgb: torch.Tensor) -> torch.Tensor:
-        z = self.forward_stride4(rgb)
-        with torch.autocast(rgb.device.type, enabled=False):  # under autocast (bf16 training): upsample and
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = self.forward_stride4(x)
+        with torch.autocast(x.device.type, enabled=False):  # under autocast (bf16 training): upsample and
             # normalise in float32
-            z = F.interpolate(z.float(), size=rgb.shape[2:], mode="bilinear", align_corners=False)
+            z = F.interpolate(z.float(), size=x.shape[2:], mode="bilinear", align_corners=False)
             return F.normalize(z, dim=1)

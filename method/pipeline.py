@@ -253,7 +253,7 @@ class Ours(EmbeddingMethodBase):
         """Train φ1 on the over-segment maps of ``videos`` (cached by settings and stage keys); returns its weights."""
         segmaps = {v.video_id: cache.path("overseg", v.video_id) / SEGMAPS_DIR for v in videos}
         source = FrameLabelSource([(v, f, _map_loader(segmaps)) for v in videos for f in self.training_frames(v)],
-                                  foreground=_fg_loader(cache))
+                                  foreground=_fg_loader(cache), geometry=self.config.net.geometry)
         key = {"phi1": to_dict(self.config.phi1_train), "net": to_dict(self.config.net),
                "frame_stride": self.config.frame_stride,
                "overseg": [cache.key_hash("overseg", v.video_id) for v in videos]}
@@ -323,7 +323,7 @@ class Ours(EmbeddingMethodBase):
         pseudo = self.pseudo_labels(train_videos, cache, self.train_phi1(train_videos, cache))
         folders = {v.video_id: pseudo / PSEUDO_MAPS_DIR.format(video_id=v.video_id) for v in train_videos}
         source = FrameLabelSource([(v, f, _map_loader(folders)) for v in train_videos for f in self.training_frames(v)],
-                                  foreground=_fg_loader(cache))
+                                  foreground=_fg_loader(cache), geometry=self.config.net.geometry)
         return source, {"pseudo": read_json(pseudo / STAGE_FILE)["key_hash"]}
 
     def segment_3d(self, videos: list[Video], rows: tuple[str, ...] = ROWS_3D) -> Segmentations3D:

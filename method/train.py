@@ -39,8 +39,8 @@ from selfseg.config import from_dict, to_dict
 from selfseg.dataset import Video
 from selfseg.fileio import atomic_write_bytes, hash_json, write_json
 from selfseg.method.contrastive import NEGATIVES, prototype_contrastive_loss
-from selfseg.method.features import foreground_box
-from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
+from selfseg.method.features import NORMAL_X, foreground_box, input_fill, video_frame
+from selfseg.method.network import EmbeddingNet, NetConfig
 
 # Files of a training run, relative to its out_dir.
 WEIGHTS = "weights.pt"  # the final network (torch dict with the settings' key_hash); a finished run is not retrained
@@ -184,12 +184,14 @@ TRAIN_PRESETS: dict[str, dict] = {
 
 
 class LabelSource(Protocol):
-    """Training pairs: ``source[i]`` → (rgb uint8 H×W×3, labels int32 H×W, −1 = ignore, ≥ 0 = segment id).
+    """Training pairs: ``source[i]`` → (input frame: uint8 H×W×3 RGB or a geometry frame, see
+    :mod:`selfseg.method.features`; labels int32 H×W, −1 = ignore, ≥ 0 = segment id).
 
     Optional attributes the trainer reads: ``foreground(i)`` → bool H×W foreground mask of pair i or None
     (``TrainConfig.mask_background``; without it, the labelled pixels), and ``global_ids``: True when an id
     names the same object in every frame (required by ``negatives: global``); ``group(i)`` → the video
-    of pair i (required by ``frames_per_video`` > 1)."""
+    of pair i (required by ``frames_per_video`` > 1); ``geometry``: True when its frames carry the geometry channels
+    (must match ``NetConfig.geometry``; without the attribute, RGB)."""
 
     def __len__(self) -> int: ...
 
@@ -207,28 +209,30 @@ class FrameLabelSource:
     label map (−1 = ignore, ≥ 0 = segment id), e.g. projected 3D segments or pseudo-labels.
     ``foreground``: optional loader of the frame's bool foreground mask (the method's own, for
     ``TrainConfig.mask_background``). ``global_ids``: the loaders' ids name the same object in every
-    video (object identities), not segments of one scene.
+    video (object identities), not segments of one scene. ``geometry``: the frames carry the geometry channels
+    (:func:`selfseg.method.features.video_frame`; for a network with ``NetConfig.geometry``).
     """
 
     def __init__(self, items: Sequence[tuple[Video, int, LabelLoader]], foreground: MaskLoader | None = None,
-                 global_ids: bool = False):
+                 global_ids: bool = False, geometry: bool = False):
         self.items = list(items)
         if not self.items:
             raise ValueError("a label source needs at least one frame")
         self._foreground = foreground
         self.global_ids = global_ids
+        self.geometry = geometry
 
     def __len__(self) -> int:
         return len(self.items)
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         video, fid, loader = self.items[i]
-        rgb = video.rgb(fid)
+        frame = video_frame(video, fid, self.geometry)
         labels = np.asarray(loader(video, fid))
-        if labels.shape != rgb.shape[:2] or not np.issubdtype(labels.dtype, np.integer):
+        if labels.shape != frame.shape[:2] or not np.issubdtype(labels.dtype, np.integer):
             raise ValueError(f"video {video.video_id} frame {fid}: label map must be an integer "
-                             f"{rgb.shape[0]}×{rgb.shape[1]} array, got {labels.dtype} {labels.shape}")
-        return rgb, labels.astype(np.int32)
+                             f"{frame.shape[0]}×{frame.shape[1]} array, got {labels.dtype} {labels.shape}")
+        return frame, labels.astype(np.int32)
 
     def foreground(self, i: int) -> np.ndarray | None:
         """bool H×W foreground mask of pair ``i`` from the ``foreground`` loader; None without one."""
@@ -289,7 +293,7 @@ def resolve_device(device: str) -> torch.device:
 
 
 def _jitter(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.ndarray:
-    """Colour jitter of float32 RGB in [0, 1] (brightness, contrast, saturation, hue; fixed order)."""
+    """Colour jitter of float32 RGB in [0, 1] (brightness, contrast, saturation, hue; fixed order; H×W×3)."""
     gray_w = np.array([0.299, 0.587, 0.114], np.float32)
     img = img * np.float32(rng.uniform(1 - cfg.brightness, 1 + cfg.brightness))
     c = np.float32(rng.uniform(1 - cfg.contrast, 1 + cfg.contrast))
@@ -307,27 +311,32 @@ def _jitter(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.n
 
 def _rotate(img: np.ndarray, lab: np.ndarray, fg: np.ndarray, deg: float
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rotate image (linear, black outside), labels (nearest, −1 outside) and foreground (nearest, False
-    outside) by ``deg`` degrees about the image centre, keeping the size."""
+    """Rotate image (linear, 0 outside), labels (nearest, −1 outside) and foreground (nearest, False
+    outside) by ``deg`` degrees about the image centre, keeping the size; a geometry frame's normals turn with it."""
     h, w = lab.shape
     M = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), deg, 1.0)
-    img = cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    img = np.dstack([cv2.warpAffine(np.ascontiguousarray(img[..., c:c + 3]), M, (w, h), flags=cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0) for c in range(0, img.shape[2], 3)])
+    if img.shape[2] > 3:  # the normal's image-plane part (x, y) turns as pixel directions do
+        img[..., NORMAL_X:NORMAL_X + 2] = img[..., NORMAL_X:NORMAL_X + 2] @ M[:, :2].T.astype(np.float32)
     lab = cv2.warpAffine(lab, M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=-1)
     fg = cv2.warpAffine(fg.astype(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=0) > 0
     return img, lab, fg
 
 
-def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.random.Generator,
+def augment(frame: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.random.Generator,
             fg: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Resize, random scale, rotation, crop, flip and colour jitter; with ``cfg.mask_background``, the
-    background (outside ``fg``, bool H×W, or outside the labelled pixels if None) and padding set to
-    RGB_MEAN and its labels ignored.
+    """Resize, random scale, rotation, crop, flip and colour jitter (of the RGB channels); with
+    ``cfg.mask_background``, the background (outside ``fg``, bool H×W, or outside the labelled pixels if None) and
+    padding set to :func:`~selfseg.method.features.input_fill` and its labels ignored.
 
-    rgb uint8 H×W×3, labels int H×W → (float32 3×h×w in [0, 1], int64 h×w with −1 = ignore), h×w = cfg.crop.
-    Padding (a scaled frame smaller than the crop) and pixels rotated in from outside get label −1.
+    frame (uint8 H×W×3 RGB, or a float32 H×W×C geometry frame: :mod:`selfseg.method.features`), labels int H×W →
+    (float32 C×h×w, RGB in [0, 1]; int64 h×w with −1 = ignore), h×w = cfg.crop. Padding (a scaled frame smaller than
+    the crop) and pixels rotated in from outside get label −1. A mirrored geometry frame's normal x is negated.
     """
-    img = rgb.astype(np.float32) / 255.0
+    img = frame.astype(np.float32) / 255.0 if frame.dtype == np.uint8 else frame.astype(np.float32)  # a copy
+    fill = input_fill(img.shape[2])
     lab = labels.astype(np.int32)
     fgm = (lab >= 0 if fg is None else np.asarray(fg, bool)) if cfg.mask_background else lab >= 0
     box = foreground_box(fgm, cfg.fg_crop_margin) if cfg.fg_crop else None
@@ -335,7 +344,7 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
         y0, y1, x0, x1 = box
         img, lab, fgm = img[y0:y1, x0:x1], lab[y0:y1, x0:x1], fgm[y0:y1, x0:x1]
     if cfg.mask_background:  # before resizing too, so that no background blends into the object's edge
-        img[~fgm] = np.asarray(RGB_MEAN, np.float32)
+        img[~fgm] = fill
     h, w = lab.shape
     base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
     s = base * rng.uniform(*cfg.scale_range)
@@ -358,9 +367,14 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
     img, lab, fgm = img[y0:y0 + ch, x0:x0 + cw], lab[y0:y0 + ch, x0:x0 + cw], fgm[y0:y0 + ch, x0:x0 + cw]
     if cfg.flip and rng.random() < 0.5:
         img, lab, fgm = img[:, ::-1], lab[:, ::-1], fgm[:, ::-1]
-    img = _jitter(np.ascontiguousarray(img), cfg, rng)
+        if img.shape[2] > 3:
+            img = img.copy()
+            img[..., NORMAL_X] *= -1
+    img = np.ascontiguousarray(img)
+    img = _jitter(img, cfg, rng) if img.shape[2] == 3 else np.concatenate([_jitter(img[..., :3], cfg, rng),
+                                                                           img[..., 3:]], -1)
     if cfg.mask_background:
-        img[~fgm] = np.asarray(RGB_MEAN, np.float32)
+        img[~fgm] = fill
     lab = lab.astype(np.int64)
     ids, counts = np.unique(lab[lab >= 0], return_counts=True)
     small = ids[counts < cfg.min_segment_px]
@@ -370,7 +384,7 @@ def augment(rgb: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.rando
 
 
 def make_batch(source: LabelSource, cfg: TrainConfig, step: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The batch of ``step``: a pure function of (seed, step) → (B×3×h×w float, B×h×w long, B long group
+    """The batch of ``step``: a pure function of (seed, step) → (B×C×h×w float, B×h×w long, B long group
     index of each image: :func:`batch_items`)."""
     rng = np.random.default_rng([cfg.seed, step])
     idx, groups = batch_items(source, cfg, rng)
@@ -510,6 +524,10 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
         raise ValueError(f"{weights}: trained with other settings; use another out_dir or delete it")
     if len(source) == 0:
         raise ValueError("the label source is empty")
+    if getattr(source, "geometry", False) != net_cfg.geometry:
+        raise ValueError(f"the network {'reads' if net_cfg.geometry else 'does not read'} geometry and the label "
+                         f"source's frames {'carry' if getattr(source, 'geometry', False) else 'do not carry'} it: "
+                         f"build the source with geometry={net_cfg.geometry}")
     if cfg.negatives == "global" and not getattr(source, "global_ids", False):
         raise ValueError("negatives 'global' needs a label source whose ids name the same object in every frame "
                          "(global_ids); this one numbers segments per scene: use 'image'")

@@ -93,6 +93,14 @@ def backproject(depth_m: np.ndarray, K: np.ndarray, mask: np.ndarray | None = No
     return pts, np.stack([v, u], -1)
 
 
+def xyz_map(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Organised point map: depth (m, H×W) → camera-frame XYZ H×W×3 float32 (m), zeros where depth is 0."""
+    h, w = depth_m.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    z = depth_m.astype(np.float32)
+    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).astype(np.float32)
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
     """T_world_cam of an OpenCV camera at ``eye`` looking at ``target`` (world z up)."""
     eye, target = np.asarray(eye, float), np.asarray(target, float)

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from selfseg.baselines.sim_data import GTFrames, open_disjoint_train_data, xyz_map
+from selfseg.baselines.sim_data import GTFrames, open_disjoint_train_data
 from selfseg.baselines.uois import RefineNet, UoisConfig, centre_targets, cluster_votes, perturb_mask, rrn_batch
 from selfseg.dataset import Dataset, DatasetError
 from selfseg.eval.cli import main as evaluate
 from selfseg.fileio import write_json
 from selfseg.generate.cli import main as generate_scenes
+from selfseg.raycast import xyz_map
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 TINY_POOL_DISJOINT = "cube,book,jar,egg,can_soup,chips_tube,flowerpot,hex_box"  # none of tiny's objects
