@@ -309,14 +309,22 @@ def _jitter(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.n
     return np.clip(img, 0, 1)
 
 
+def _by_3_channels(img: np.ndarray, op: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``op`` (an OpenCV image operation, some of which take at most 4 channels) on H×W×C ``img`` 3 channels at a
+    time, restacked to h×w×C."""
+    if img.shape[2] == 3:
+        return op(img)
+    return np.dstack([op(np.ascontiguousarray(img[..., c:c + 3])) for c in range(0, img.shape[2], 3)])
+
+
 def _rotate(img: np.ndarray, lab: np.ndarray, fg: np.ndarray, deg: float
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotate image (linear, 0 outside), labels (nearest, −1 outside) and foreground (nearest, False
     outside) by ``deg`` degrees about the image centre, keeping the size; a geometry frame's normals turn with it."""
     h, w = lab.shape
     M = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), deg, 1.0)
-    img = np.dstack([cv2.warpAffine(np.ascontiguousarray(img[..., c:c + 3]), M, (w, h), flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0) for c in range(0, img.shape[2], 3)])
+    img = _by_3_channels(img, lambda x: cv2.warpAffine(x, M, (w, h), flags=cv2.INTER_LINEAR,
+                                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0))
     if img.shape[2] > 3:  # the normal's image-plane part (x, y) turns as pixel directions do
         img[..., NORMAL_X:NORMAL_X + 2] = img[..., NORMAL_X:NORMAL_X + 2] @ M[:, :2].T.astype(np.float32)
     lab = cv2.warpAffine(lab, M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=-1)
@@ -349,7 +357,8 @@ def augment(frame: np.ndarray, labels: np.ndarray, cfg: TrainConfig, rng: np.ran
     base = cfg.image_size / max(h, w) if cfg.image_size > 0 else 1.0
     s = base * rng.uniform(*cfg.scale_range)
     nh, nw = max(1, round(h * s)), max(1, round(w * s))
-    img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)  # antialiased
+    img = _by_3_channels(img, lambda x: cv2.resize(x, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else
+                                                   cv2.INTER_LINEAR))  # antialiased
     lab = cv2.resize(lab, (nw, nh), interpolation=cv2.INTER_NEAREST)
     fgm = cv2.resize(fgm.astype(np.uint8), (nw, nh), interpolation=cv2.INTER_NEAREST) > 0
     if cfg.mask_background:

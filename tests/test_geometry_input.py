@@ -90,6 +90,9 @@ def test_augment_mirrors_the_normals_with_the_image():
         assert np.allclose(img[3:], want[3:])  # the geometry: as is, or mirrored with the normal's x negated
         xs.add(round(x, 2))
     assert xs == {0.5, -0.5}  # flipped in some draws, not in others
+    kw.update(image_size=100, scale_range=(0.8, 1.2))  # resized by area (OpenCV takes 4 channels at most there)
+    img, _ = augment(frame, labels, TrainConfig(flip=False, **kw), np.random.default_rng(0))
+    assert np.allclose(img[3:6, 10:-10, 10:-10], np.array(n, np.float32)[:, None, None], atol=1e-3)
 
 
 def test_rotation_turns_the_normals_with_the_image():
