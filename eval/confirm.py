@@ -461,6 +461,8 @@ def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool) -> str:
     rows = timings.read_text().splitlines() if timings.is_file() else []
     state = ("**finished**" if rows and rows[-1].startswith("total\t")
              else "**not finished** (the run was cut off or is still going)")
+    if noisy:  # scripts/confirm_noisy.sh keeps no timings: the records say what had finished, not whether all had
+        state = "with the runs' records that had finished (the noisy rows keep no timings to tell the seed's end)"
     listed = "; ".join(f"`{n}` " + ", ".join(f"{c[d]} {'scored' if d == SCORES_DIR else d}" for d in ARCHIVED_DIRS
                                              if d in c) for n, c in sorted(runs.items()))
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")

@@ -317,6 +317,8 @@ def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, t
     assert "1.000" not in readme and "IoU" not in readme  # names and counts, no score
     assert "**not finished**" in (dest / "seed-202/README.md").read_text()  # no timings: cut off or still going
     assert confirm.archive(rec, src, dest) == lines  # idempotent
+    confirm.archive(rec, src, tmp_path / "noisy", noisy=True)  # noisy rows keep no timings: no state claimed
+    assert "finished**" not in (tmp_path / "noisy/seed-101/README.md").read_text()
 
     fresh = tmp_path / "fresh"  # another machine: nothing but the archive
     with pytest.raises(FreezeError, match="confirm restore"):
