@@ -36,13 +36,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from selfseg.config import ConfigError, load_config
+from selfseg.config import ConfigError, config_hash, load_config
 from selfseg.dataset import Dataset, DatasetError, LabeledVideo
 from selfseg.eval.aggregate import fmt
 from selfseg.eval.datastats import format_stats, overall_stats, scene_stats, view_stats
 from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_scores, relabel, segment_instances
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
-from selfseg.eval.layout import FAILED_JSON, LIBRARY_LOG, SCORES_JSON, STAGES_DIR, WORK_DIR
+from selfseg.eval.layout import FAILED_JSON, FRAMES_JSONL, LIBRARY_LOG, SCORES_JSON, STAGES_DIR, WORK_DIR
 from selfseg.eval.protocol import EXIT_OVER_BUDGET, record_failure, write_result
 from selfseg.eval.provenance import git_info, provenance
 from selfseg.executor import executor_config, shared_executor
@@ -200,10 +200,38 @@ def run_stats(dataset: Dataset, config: OursConfig, out: Path, models: dict[str,
     return record
 
 
+def earlier_record(out: Path, dataset: Dataset, row: str, config: OursConfig, max_dist_m: float) -> dict | None:
+    """The record an identical earlier run filed for ``row`` in ``out`` (the same row config, dataset content, commit
+    and ``max_dist_m``, with its per-video records in place), or its failure record (the same config, dataset and
+    commit: the same run would pass the same budget); else None. Reused as ``evaluate`` reuses a finished fold
+    (:mod:`selfseg.eval.resume`), so a resumed run does not score a finished row again."""
+    commit = git_info()["commit"]
+    if commit is None:
+        return None
+    where = {"dataset": dataset.name, "name": row, "fold": FOLD}
+    want = {"method": Ours.name, "config_hash": config_hash(lccp_only(config) if row == "lccp" else config),
+            "dataset": dataset.content_hash(), "commit": commit}
+
+    def same(rec: dict) -> bool:
+        return want == {"method": rec.get("method"), "config_hash": rec.get("config_hash"),
+                        "dataset": rec.get("dataset", {}).get("content_hash"), "commit": rec.get("git", {}).get("commit")}
+
+    scores = Path(out) / SCORES_JSON.format(**where)
+    if scores.is_file() and (Path(out) / FRAMES_JSONL.format(**where)).is_file():
+        rec = read_json(scores)
+        if same(rec) and rec.get("options", {}).get("max_dist_m") == max_dist_m:
+            return rec
+    failed = Path(out) / FAILED_JSON.format(**where)
+    if failed.is_file() and same(rec := read_json(failed)):
+        return rec
+    return None
+
+
 def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, models: dict[str, dict] | None = None,
                max_dist_m: float = GT_MAX_DIST_M, progress: bool = True,
                executor: cf.Executor | None = None) -> list[dict]:
-    """Segment every video, score each row against the GT points and write its result record.
+    """Segment every video, score each row against the GT points and write its result record; a row that an
+    identical earlier run finished (or failed under its budget) keeps that record (:func:`earlier_record`).
 
     ``models`` ({video_id: {obj_id: mesh in metres, model frame}}) overrides the dataset's model files
     (analytic test scenes have none). Returns the records, in the order of ``rows``. If the matching passes its
@@ -215,6 +243,19 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
     out = Path(out)
+    earlier = {r: earlier_record(out, dataset, r, config, max_dist_m) for r in rows}
+    if progress and any(earlier.values()):
+        print(f"evaluate3d: {', '.join(r for r in rows if earlier[r])}: the records of an identical earlier run "
+              "(same config, data and commit) are kept", file=sys.stderr)
+    todo = tuple(r for r in rows if earlier[r] is None)
+    new = {r["name"]: r for r in _score_rows(dataset, config, out, todo, models, max_dist_m, progress, executor)} \
+        if todo else {}
+    return [earlier[r] or new[r] for r in rows]
+
+
+def _score_rows(dataset: Dataset, config: OursConfig, out: Path, rows: tuple[str, ...], models: dict[str, dict] | None,
+                max_dist_m: float, progress: bool, executor: cf.Executor | None) -> list[dict]:
+    """:func:`run_table2`'s work for the rows it does not keep: segment, score, write each row's record."""
     failure = {}
     try:
         seg, aligned, gt_inst = labeled_scenes(dataset, config, out, rows, models, max_dist_m, executor,

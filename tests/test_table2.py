@@ -51,6 +51,7 @@ def test_matching_on_ray_equals_local(tmp_path):
     pseudo = out / WORK_DIR.format(name="ours", dataset=ds.name, fold=FOLD) / "pseudo"
     matches_local = read_json(next(pseudo.rglob("matches.json")))
     shutil.rmtree(pseudo)  # φ1 and the per-video stages stay cached: only matching and pruning run again
+    (out / SCORES_JSON.format(dataset=ds.name, name="ours-matching", fold=FOLD)).unlink()  # or the row is kept
     for kept in (out / STAGES_DIR).glob(f"*/{MATCH_CACHE_DIR}"):
         shutil.rmtree(kept)  # the matching too, or it would be read back
     tasks = []
@@ -123,11 +124,22 @@ def test_table2_rows_alignment_and_leaderboard(tmp_path):
     for row in ROWS:
         assert f"**{row}**" in table2
 
+    # the same run again (a resumed one) keeps every row's record as it is, without scoring it again; another
+    # max_dist_m scores again
+    files = sorted(out.glob(SCORES_JSON.format(dataset=ds.name, name="*", fold=FOLD)))
+    stamps = [p.stat().st_mtime_ns for p in files]
+    assert run_table2(ds, cfg, out, ROWS, models=models, progress=False) == records
+    assert [p.stat().st_mtime_ns for p in files] == stamps and len(files) == len(ROWS)
+    farther = run_table2(ds, cfg, out, ("lccp",), models=models, progress=False, max_dist_m=0.02)[0]
+    lccp_path = out / SCORES_JSON.format(dataset=ds.name, name="lccp", fold=FOLD)
+    assert farther["options"]["max_dist_m"] == 0.02 and lccp_path.stat().st_mtime_ns != stamps[files.index(lccp_path)]
+
     # matching over its CPU budget: the ours-matching row's outcome is a failure record (its earlier scores go), the
-    # other rows are scored as before
+    # other rows are scored as before; run again, the failure is kept (the same run would pass the same budget)
     over = load_config(OursConfig, overrides=[*FAST, "pseudo.match.cpu_budget_per_pair_s=1e-9"])
     again = run_table2(ds, over, out, ROWS, models=models, progress=False)
     assert [r["name"] for r in again] == list(ROWS) and "CPU budget" in again[2]["failure"]["message"]
     assert [r["metrics"] for i, r in enumerate(again) if i != 2] == [r["metrics"] for i, r in enumerate(records) if i != 2]
     assert read_json(out / FAILED_JSON.format(dataset=ds.name, name="ours-matching", fold=FOLD))["task"] == "3d"
     assert not (out / SCORES_JSON.format(dataset=ds.name, name="ours-matching", fold=FOLD)).exists()
+    assert run_table2(ds, over, out, ("ours-matching",), models=models, progress=False) == [again[2]]
