@@ -246,7 +246,7 @@ def _fresh(rec: dict, runs: Path) -> tuple[list[Seed], dict]:
     fresh, three_d = [], {}
     for s in rec["seeds"]:
         results = runs / SEED_RESULTS_DIR.format(seed=s)
-        if not results.is_dir():
+        if not results.is_dir() or not _records(results):  # not begun, or no fold finished yet
             continue
         groups, failures = _outcomes(results)
         _check_records(rec, s, groups)
@@ -495,7 +495,7 @@ def _seed_files(run: Path) -> list[Path]:
 def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]:
     """Copy the finished fold records of freeze ``rec``'s seeds under ``runs`` (``noisy``: its noisy-depth rows) into
     ``dest`` (one folder per seed, with a README); refuses to drop a record ``dest`` already holds that ``runs`` lacks (restore first).
-    Returns one line per seed archived."""
+    A record ``dest`` holds of the same run (:func:`_run_identity`) stays as it is. Returns one line per seed archived."""
     lines = []
     for s in rec["seeds"]:
         run, into = runs / SEED_RUN_DIR.format(seed=s), dest / SEED_RUN_DIR.format(seed=s)
@@ -506,10 +506,25 @@ def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]
         if lost:
             raise FreezeError(f"{into / lost[0]}: archived but not in {run} ({len(lost)} such files); "
                               f"run `confirm restore` into that runs folder first")
-        _copy(run, into, files, replace=True)
-        atomic_write_text(dest / ARCHIVE_README.format(seed=s), _seed_readme(rec, s, run, noisy))
+        if not files:  # nothing finished yet: no folder for it
+            continue
+        kept = [f for f in files if f.suffix == ".json" and (into / f).is_file()
+                and _run_identity(read_json(into / f)) == _run_identity(read_json(run / f))]
+        kept += [f.with_name(f.name.removesuffix(".json") + ".frames.jsonl") for f in kept]
+        written = _copy(run, into, [f for f in files if f not in kept], replace=True)
+        readme = dest / ARCHIVE_README.format(seed=s)
+        if written or not readme.is_file():
+            atomic_write_text(readme, _seed_readme(rec, s, run, noisy))
         lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in files)} fold records → {into}")
     return lines
+
+
+def _run_identity(record: dict) -> tuple:
+    """What makes two fold records the same run's: method, name, fold, config, dataset content and commit. An
+    archived record keeps its place when a rerun of the same run (a resumed queue re-scoring a finished step)
+    writes it again with a new time stamp and timings: the record of a fresh seed is its first run's."""
+    return (record.get("method"), record.get("name"), record.get("fold"), record.get("config_hash"),
+            record.get("dataset", {}).get("content_hash"), record.get("git", {}).get("commit"))
 
 
 def restore(rec: dict, src: Path, runs: Path) -> list[str]:

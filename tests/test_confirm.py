@@ -306,9 +306,10 @@ def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, t
     running.parent.mkdir(parents=True)
     running.write_text("{}\n")  # a fold whose JSON is not written yet
     (src / "seed-101/timings.tsv").write_text("generate\t3\t3\t100\nours\t9\t9\t100\ntotal\t20\t\n")
+    (src / SEED_RESULTS_DIR.format(seed=303)).mkdir(parents=True)  # a seed begun, nothing finished: not archived
     dest = tmp_path / "archive"
     lines = confirm.archive(rec, src, dest)
-    assert [line.split(":")[0] for line in lines] == ["seed 101", "seed 202"]
+    assert [line.split(":")[0] for line in lines] == ["seed 101", "seed 202"] and not (dest / "seed-303").exists()
     n = len(list((src / "seed-101/results/scores").rglob("fold*.json")))
     assert n == 6 and len(list((dest / "seed-101/results/scores").rglob("fold*.json"))) == n
     assert not (dest / "seed-101/results/scores/x").exists()
@@ -317,6 +318,20 @@ def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, t
     assert "1.000" not in readme and "IoU" not in readme  # names and counts, no score
     assert "**not finished**" in (dest / "seed-202/README.md").read_text()  # no timings: cut off or still going
     assert confirm.archive(rec, src, dest) == lines  # idempotent
+    # a resumed queue scoring a finished fold again (same run: new time stamp and timings) leaves the archive as it
+    # was, README included; a record of another run (here: another commit) replaces the archived one
+    redone = sorted((src / "seed-101/results/scores").rglob("fold*.json"))[0]
+    archived = dest / redone.relative_to(src)
+    before, readme = archived.read_bytes(), (dest / "seed-101/README.md").read_bytes()
+    r = read_json(redone)
+    write_json(redone, {**r, "created_utc": "2099-01-01T00:00:00+00:00", "timings": {**r["timings"], "fit_s": 1e6}})
+    assert confirm.archive(rec, src, dest) == lines
+    assert archived.read_bytes() == before and (dest / "seed-101/README.md").read_bytes() == readme
+    write_json(redone, {**r, "git": {**r["git"], "commit": "f" * 40}})
+    confirm.archive(rec, src, dest)
+    assert read_json(archived)["git"]["commit"] == "f" * 40
+    write_json(redone, r)  # back to the freeze's commit, which the board checks
+    confirm.archive(rec, src, dest)
     confirm.archive(rec, src, tmp_path / "noisy", noisy=True)  # noisy rows keep no timings: no state claimed
     assert "finished**" not in (tmp_path / "noisy/seed-101/README.md").read_text()
 
