@@ -67,6 +67,7 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.layout import FAILED_DIR, REJECTED_DIR, SCORES_DIR
 from selfseg.eval.leaderboard import load_failures, load_results, replace_generated
 from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
+from selfseg.eval.provenance import run_key
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -519,12 +520,11 @@ def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]
     return lines
 
 
-def _run_identity(record: dict) -> tuple:
-    """What makes two fold records the same run's: method, name, fold, config, dataset content and commit. An
+def _run_identity(record: dict) -> dict:
+    """What makes two fold records the same run's: :func:`~selfseg.eval.provenance.run_key`, name and fold. An
     archived record keeps its place when a rerun of the same run (a resumed queue re-scoring a finished step)
     writes it again with a new time stamp and timings: the record of a fresh seed is its first run's."""
-    return (record.get("method"), record.get("name"), record.get("fold"), record.get("config_hash"),
-            record.get("dataset", {}).get("content_hash"), record.get("git", {}).get("commit"))
+    return {**run_key(record), "name": record.get("name"), "fold": record.get("fold")}
 
 
 def restore(rec: dict, src: Path, runs: Path) -> list[str]:

@@ -75,3 +75,10 @@ def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> d
         "versions": package_versions(),
         "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
+
+
+def run_key(record: dict) -> dict:
+    """What identifies the run a result record came from: method, config hash, dataset content and commit (what
+    resuming and archiving compare; a record's time stamp and timings are not part of it)."""
+    return {"method": record.get("method"), "config_hash": record.get("config_hash"),
+            "dataset": record.get("dataset", {}).get("content_hash"), "commit": record.get("git", {}).get("commit")}

@@ -12,16 +12,14 @@ from selfseg.dataset import Dataset
 from selfseg.eval.folds import EvalOptions, select_test_frames
 from selfseg.eval.layout import (FAILED_JSON, PREDICTION_PNG, PREDICTIONS_DIR, REPLACED_DIR, RUN_FAILED_DIR,
                                  RUN_SCORES_DIR, SCORES_JSON, results_key)
-from selfseg.eval.provenance import git_info
+from selfseg.eval.provenance import git_info, run_key
 from selfseg.eval.sandbox import MethodRef
 from selfseg.fileio import read_json
 from selfseg.method_api import Method
 
 
 def _resume_key(record: dict) -> dict:
-    options = {k: v for k, v in record["options"].items() if k != "folds"}
-    return {"method": record["method"], "config_hash": record["config_hash"], "options": options,
-            "dataset": record["dataset"]["content_hash"], "commit": record["git"]["commit"]}
+    return {**run_key(record), "options": {k: v for k, v in record["options"].items() if k != "folds"}}
 
 
 def _wanted_key(method_cls: MethodRef | type[Method], config, dataset: Dataset, options: EvalOptions) -> dict:

@@ -44,7 +44,7 @@ from selfseg.eval.merges import cosine_by_object, merge_same_instance, merge_sco
 from selfseg.eval.points import GT_MAX_DIST_M, PointsEvaluator, gt_point_labels, gt_scene
 from selfseg.eval.layout import FAILED_JSON, FRAMES_JSONL, LIBRARY_LOG, SCORES_JSON, STAGES_DIR, WORK_DIR
 from selfseg.eval.protocol import EXIT_OVER_BUDGET, record_failure, write_result
-from selfseg.eval.provenance import git_info, provenance
+from selfseg.eval.provenance import git_info, provenance, run_key
 from selfseg.executor import executor_config, shared_executor
 from selfseg.fileio import read_json, write_json
 from selfseg.guard import ground_truth_forbidden
@@ -211,18 +211,13 @@ def earlier_record(out: Path, dataset: Dataset, row: str, config: OursConfig, ma
     where = {"dataset": dataset.name, "name": row, "fold": FOLD}
     want = {"method": Ours.name, "config_hash": config_hash(lccp_only(config) if row == "lccp" else config),
             "dataset": dataset.content_hash(), "commit": commit}
-
-    def same(rec: dict) -> bool:
-        return want == {"method": rec.get("method"), "config_hash": rec.get("config_hash"),
-                        "dataset": rec.get("dataset", {}).get("content_hash"), "commit": rec.get("git", {}).get("commit")}
-
     scores = Path(out) / SCORES_JSON.format(**where)
     if scores.is_file() and (Path(out) / FRAMES_JSONL.format(**where)).is_file():
         rec = read_json(scores)
-        if same(rec) and rec.get("options", {}).get("max_dist_m") == max_dist_m:
+        if run_key(rec) == want and rec.get("options", {}).get("max_dist_m") == max_dist_m:
             return rec
     failed = Path(out) / FAILED_JSON.format(**where)
-    if failed.is_file() and same(rec := read_json(failed)):
+    if failed.is_file() and run_key(rec := read_json(failed)) == want:
         return rec
     return None
 
