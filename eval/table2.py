@@ -200,33 +200,37 @@ def run_stats(dataset: Dataset, config: OursConfig, out: Path, models: dict[str,
     return record
 
 
-def earlier_record(out: Path, dataset: Dataset, row: str, config: OursConfig, max_dist_m: float) -> dict | None:
-    """The record an identical earlier run filed for ``row`` in ``out`` (the same row config, dataset content, commit
+def earlier_records(out: Path, dataset: Dataset, rows: tuple[str, ...], config: OursConfig, max_dist_m: float
+                    ) -> dict[str, dict | None]:
+    """{row: the record an identical earlier run filed for it in ``out`` (the same row config, dataset content, commit
     and ``max_dist_m``, with its per-video records in place), or its failure record (the same config, dataset and
-    commit: the same run would pass the same budget); else None. Reused as ``evaluate`` reuses a finished fold
+    commit: the same run would pass the same budget), or None}. Reused as ``evaluate`` reuses a finished fold
     (:mod:`selfseg.eval.resume`), so a resumed run does not score a finished row again."""
     commit = git_info()["commit"]
     if commit is None:
-        return None
-    where = {"dataset": dataset.name, "name": row, "fold": FOLD}
-    want = {"method": Ours.name, "config_hash": config_hash(lccp_only(config) if row == "lccp" else config),
-            "dataset": dataset.content_hash(), "commit": commit}
-    scores = Path(out) / SCORES_JSON.format(**where)
-    if scores.is_file() and (Path(out) / FRAMES_JSONL.format(**where)).is_file():
-        rec = read_json(scores)
-        if run_key(rec) == want and rec.get("options", {}).get("max_dist_m") == max_dist_m:
-            return rec
-    failed = Path(out) / FAILED_JSON.format(**where)
-    if failed.is_file() and run_key(rec := read_json(failed)) == want:
-        return rec
-    return None
+        return dict.fromkeys(rows)
+    content = dataset.content_hash()  # one scan of the dataset for every row
+    found = {}
+    for row in rows:
+        where = {"dataset": dataset.name, "name": row, "fold": FOLD}
+        want = {"method": Ours.name, "config_hash": config_hash(lccp_only(config) if row == "lccp" else config),
+                "dataset": content, "commit": commit}
+        found[row] = None
+        scores, failed = Path(out) / SCORES_JSON.format(**where), Path(out) / FAILED_JSON.format(**where)
+        if scores.is_file() and (Path(out) / FRAMES_JSONL.format(**where)).is_file():
+            rec = read_json(scores)
+            if run_key(rec) == want and rec.get("options", {}).get("max_dist_m") == max_dist_m:
+                found[row] = rec
+        if found[row] is None and failed.is_file() and run_key(rec := read_json(failed)) == want:
+            found[row] = rec
+    return found
 
 
 def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, models: dict[str, dict] | None = None,
                max_dist_m: float = GT_MAX_DIST_M, progress: bool = True,
                executor: cf.Executor | None = None) -> list[dict]:
     """Segment every video, score each row against the GT points and write its result record; a row that an
-    identical earlier run finished (or failed under its budget) keeps that record (:func:`earlier_record`).
+    identical earlier run finished (or failed under its budget) keeps that record (:func:`earlier_records`).
 
     ``models`` ({video_id: {obj_id: mesh in metres, model frame}}) overrides the dataset's model files
     (analytic test scenes have none). Returns the records, in the order of ``rows``. If the matching passes its
@@ -238,7 +242,7 @@ def run_table2(dataset: Dataset, config: OursConfig, out: Path, rows=ROWS, model
     if bad or not rows:
         raise ConfigError(f"--rows: unknown row(s) {bad or rows!r}; choose from {', '.join(ROWS)}")
     out = Path(out)
-    earlier = {r: earlier_record(out, dataset, r, config, max_dist_m) for r in rows}
+    earlier = earlier_records(out, dataset, rows, config, max_dist_m)
     if progress and any(earlier.values()):
         print(f"evaluate3d: {', '.join(r for r in rows if earlier[r])}: the records of an identical earlier run "
               "(same config, data and commit) are kept", file=sys.stderr)
