@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from selfseg.baselines.simple import fill_from_nearest
 from selfseg.dataset import Video
 from selfseg.method.lccp import LCCPConfig, lccp_segment
 from selfseg.method.overseg import prune_small
@@ -44,8 +45,6 @@ def estimate_normals_cam(points: np.ndarray, knn: int) -> np.ndarray:
 
 def lccp_frame_labels(depth_m: np.ndarray, K: np.ndarray, fg_mask: np.ndarray, cfg: LCCPFrameConfig) -> np.ndarray:
     """H×W uint16 instance map (0 = none) of LCCP segments of one frame's foreground."""
-    from scipy import ndimage
-
     fg = fg_mask.astype(bool)
     out = np.zeros(depth_m.shape, np.int64)
     pts, vu = backproject(depth_m, K, fg)
@@ -58,9 +57,8 @@ def lccp_frame_labels(depth_m: np.ndarray, K: np.ndarray, fg_mask: np.ndarray, c
             _, nn = cKDTree(pts[ok]).query(pts[~ok])
             lab[~ok] = lab[ok][nn]
         out[vu[:, 0], vu[:, 1]] = np.where(lab >= 0, lab + 1, 0)
-    if cfg.fill_unlabeled and (out > 0).any() and (fg & (out == 0)).any():
-        _, (iy, ix) = ndimage.distance_transform_edt(out == 0, return_indices=True)
-        out = np.where(fg & (out == 0), out[iy, ix], out)
+    if cfg.fill_unlabeled:
+        out = fill_from_nearest(out, fg)
     out[~fg] = 0
     return out.astype(np.uint16)
 

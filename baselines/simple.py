@@ -69,9 +69,19 @@ class DepthClustering(Method):
         return cluster_depth(video.depth_m(frame_id), video.K(frame_id), fg_mask, self.config)
 
 
+def fill_from_nearest(labels: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """``labels`` (H×W int, 0 = none) with each unlabelled pixel of the bool mask ``fg`` given the label of the
+    nearest labelled pixel (Euclidean distance in pixels); unchanged when no pixel is labelled."""
+    from scipy import ndimage
+
+    if not (labels > 0).any() or not (fg & (labels == 0)).any():
+        return labels
+    _, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+    return np.where(fg & (labels == 0), labels[iy, ix], labels)
+
+
 def cluster_depth(depth_m: np.ndarray, K: np.ndarray, fg_mask: np.ndarray, cfg: DepthClusteringConfig) -> np.ndarray:
     """H×W uint16 labels (0 = none) of Euclidean clusters of the foreground points; see :class:`DepthClustering`."""
-    from scipy import ndimage
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -93,9 +103,8 @@ def cluster_depth(depth_m: np.ndarray, K: np.ndarray, fg_mask: np.ndarray, cfg: 
         labels[sizes[labels] < cfg.min_points] = 0
         out[vu[:, 0], vu[:, 1]] = labels
     fg = fg_mask.astype(bool)
-    if cfg.fill_unlabeled and (out > 0).any() and (fg & (out == 0)).any():
-        _, (iy, ix) = ndimage.distance_transform_edt(out == 0, return_indices=True)
-        out = np.where(fg & (out == 0), out[iy, ix], out)
+    if cfg.fill_unlabeled:
+        out = fill_from_nearest(out, fg)
     out[~fg] = 0
     ids, inv = unique_inverse(out)  # renumber clusters 1..n so they fit uint16
     return (inv.reshape(out.shape) + int(ids[0] != 0)).astype(np.uint16)
