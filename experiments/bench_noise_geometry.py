@@ -18,8 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench_touching_merges import joined, touching_pairs
-from common import save_rows
+from common import joined, save_rows, touching_pairs
 
 from selfseg.baselines.lccp_frame import LCCPFrameConfig, lccp_frame_labels
 from selfseg.baselines.simple import DepthClusteringConfig, cluster_depth

@@ -19,26 +19,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common import joined, touching_pairs
+
 from selfseg.dataset import Dataset, read_inst
 from selfseg.eval.layout import FRAMES_JSONL, PREDICTION_PNG, PREDICTIONS_DIR
 from selfseg.fileio import write_json
-
-
-def touching_pairs(gt: np.ndarray, min_contact_px: int) -> list[tuple[int, int]]:
-    """Pairs (a < b) of GT instances of ``gt`` (H×W, 0 = background) with ≥ ``min_contact_px`` pixels of one
-    within 2 px (8-connected dilation by 2) of the other."""
-    kernel = np.ones((5, 5), np.uint8)
-    ids = [int(i) for i in np.unique(gt) if i]
-    grown = {i: cv2.dilate((gt == i).astype(np.uint8), kernel).astype(bool) for i in ids}
-    return [(a, b) for k, a in enumerate(ids) for b in ids[k + 1:] if np.count_nonzero(grown[a] & (gt == b)) >= min_contact_px]
-
-
-def joined(pred: np.ndarray, gt: np.ndarray, a: int, b: int) -> bool:
-    """One predicted segment (≠ 0) holds at least half of instance ``a``'s and half of ``b``'s pixels."""
-    for s in np.unique(pred[(gt == a) | (gt == b)]):
-        if s and min(np.mean(pred[gt == a] == s), np.mean(pred[gt == b] == s)) >= 0.5:
-            return True
-    return False
 
 
 def delta_e(lab: np.ndarray, gt: np.ndarray, a: int, b: int) -> float:
