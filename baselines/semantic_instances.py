@@ -36,8 +36,9 @@ from selfseg.method.background import BackgroundConfig, frame_foreground
 from selfseg.method.embed_method import video_key
 from selfseg.method.features import embed_frames, foreground_box
 from selfseg.method.meanshift import MeanShiftConfig, absorb_small, split_components
-from selfseg.method.train import (_RUNTIME_FIELDS, TRAINING_LOG_JSON, OptimSchedule, SpeedSettings, TrainConfig,
-                                  _latest_checkpoint, _save_checkpoint, _save_torch, drop_checkpoints, resolve_device)
+from selfseg.method.train import (TRAINING_LOG_JSON, OptimSchedule, SpeedSettings, TrainConfig,
+                                  _latest_checkpoint, _save_checkpoint, _save_torch, drop_checkpoints, resolve_device,
+                                  settings_key)
 from selfseg.method_api import Method
 
 TRAIN_DIR = "{method}-{key_hash}"  # in the method's workdir: its training run (files: selfseg.method.train)
@@ -342,10 +343,5 @@ def training_key(cfg: SemanticConfig) -> dict:
 
 def result_key(cfg: Any) -> Any:
     """A config as JSON without the fields that change how a run executes but not its result (at any depth)."""
-    def strip(d: Any) -> Any:
-        if isinstance(d, dict):
-            return {k: strip(v) for k, v in d.items() if k not in _RUNTIME_FIELDS}
-        return d
-
-    return strip(to_dict(cfg))
+    return settings_key(to_dict(cfg))
 

@@ -43,6 +43,9 @@ def package_versions() -> dict:
     return out
 
 
+SPEED_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")  # cpu_flags: what a machine record names
+
+
 def cpu_model() -> str:
     """The CPU's model name (Linux: /proc/cpuinfo), else what ``platform`` reports."""
     cpuinfo = Path("/proc/cpuinfo")
@@ -51,10 +54,19 @@ def cpu_model() -> str:
     return models[0] if models else platform.processor() or platform.machine()
 
 
+def cpu_flags() -> list[str]:
+    """Which of the instruction sets that set the speed of training (:data:`SPEED_FLAGS`) the CPU has (Linux:
+    /proc/cpuinfo; else empty). Without avx512_bf16 or amx_bf16, bf16 training is emulated and slow."""
+    cpuinfo = Path("/proc/cpuinfo")
+    flags = next((ln.split(":", 1)[1].split() for ln in cpuinfo.read_text().splitlines() if ln.startswith("flags")),
+                 []) if cpuinfo.is_file() else []
+    return [f for f in SPEED_FLAGS if f in flags]
+
+
 def machine() -> dict:
-    """The machine a measurement runs on, now: CPU model, logical CPUs, load average (1, 5, 15 min; the cores
-    may be shared), Python and platform."""
-    return {"cpu": cpu_model(), "cpu_count": os.cpu_count(),
+    """The machine a measurement runs on, now: CPU model and its :func:`cpu_flags`, logical CPUs, load average
+    (1, 5, 15 min; the cores may be shared), Python and platform."""
+    return {"cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpu_count": os.cpu_count(),
             "load_average": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version(),
             "platform": platform.platform()}
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import sys
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -50,7 +51,7 @@ LOSS_CURVE_PNG = "loss_curve.png"  # plot of the per-step loss and its running m
 # Settings that change how a run executes but not its result; excluded from the resume key.
 _RUNTIME_FIELDS = ("device", "threads", "checkpoint_every")
 PREFETCH_THREADS = 6  # most threads making batches ahead of a GPU's steps (training_batches)
-PRECISIONS = ("fp32", "bf16")  # TrainConfig.precision: the dtype of the network's forward pass in training
+PRECISIONS = ("fp32", "bf16", "auto")  # TrainConfig.precision: the dtype of the network's forward pass in training
 
 
 @dataclass
@@ -82,8 +83,9 @@ class SpeedSettings:
 
     ``channels_last``: the network's weights and input in NHWC memory layout (oneDNN's faster convolutions on the
     CPU; the same sums in another order). ``precision`` "bf16": the network's forward pass under bfloat16
-    autocast (CPUs with AVX512-BF16 or AMX, and GPUs, run it about twice as fast; elsewhere it is slower); the
-    features' upsampling and normalisation and the loss stay in float32."""
+    autocast (CPUs with AVX512-BF16 or AMX, and GPUs, run it about twice as fast; a CPU without them emulates it,
+    11-14× slower than float32 on an AVX2 AMD EPYC); "auto": bf16 where the device runs it natively
+    (:func:`native_bf16`), else float32. The features' upsampling and normalisation and the loss stay in float32."""
 
     channels_last: bool = False
     precision: str = "fp32"
@@ -92,9 +94,20 @@ class SpeedSettings:
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
 
+    def precision_on(self, device: torch.device) -> str:
+        """The precision the phase trains in on ``device``: "fp32" or "bf16" ("auto" resolved)."""
+        if self.precision == "auto":
+            return "bf16" if native_bf16(device) else "fp32"
+        return self.precision
+
     def autocast(self, device: torch.device):
         """The context of the network's forward pass in training (bfloat16 autocast, or nothing)."""
-        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
+        bf16 = self.precision_on(device) == "bf16"
+        if bf16 and not native_bf16(device):
+            _warn_once(f"precision bf16 on a {device.type} without native bfloat16 (torch CPU capability "
+                       f"{torch.backends.cpu.get_cpu_capability()}): emulated, "
+                       f"about 10× slower than float32 here; precision 'auto' trains in float32 on such a device")
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
 
     def layout(self, x: torch.Tensor | nn.Module):
         """``x`` (a network or a B×C×H×W batch) in the memory layout the phase trains in."""
@@ -102,6 +115,35 @@ class SpeedSettings:
             return x
         return x.to(memory_format=torch.channels_last) if isinstance(x, nn.Module) else \
             x.contiguous(memory_format=torch.channels_last)
+
+
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` runs bfloat16 convolutions natively: a CUDA GPU with bf16, or a CPU with AVX512-BF16 or
+    AMX. Elsewhere oneDNN emulates them (measured: 11-14× slower than float32 on an AVX2 AMD EPYC)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_once(msg: str) -> None:
+    """``msg`` on stderr, once per process."""
+    if msg not in _WARNED:
+        _WARNED.add(msg)
+        print(f"warning: {msg}", file=sys.stderr, flush=True)
+
+
+def settings_key(d):
+    """A config's dict (:func:`to_dict`) as a training run's resume key: without the fields that change how a run
+    executes but not its result (at any depth), and precision "auto" replaced by the precision it resolves to on
+    the settings' device, so an "auto" run equals the explicit run of that precision."""
+    if not isinstance(d, dict):
+        return d
+    if d.get("precision") == "auto" and "device" in d:
+        d = {**d, "precision": SpeedSettings(precision="auto").precision_on(resolve_device(d["device"]))}
+    return {k: settings_key(v) for k, v in d.items() if k not in _RUNTIME_FIELDS}
 
 
 @dataclass
@@ -456,8 +498,7 @@ def new_embedding_net(net_cfg: NetConfig, cfg: TrainConfig, device: torch.device
 
 
 def _train_key(cfg: TrainConfig, net_cfg: NetConfig) -> dict:
-    train = {k: v for k, v in to_dict(cfg).items() if k not in _RUNTIME_FIELDS}
-    return {"train": train, "net": to_dict(net_cfg)}
+    return {"train": settings_key(to_dict(cfg)), "net": to_dict(net_cfg)}
 
 
 def _save_torch(path: Path, obj: dict) -> None:

@@ -8,7 +8,7 @@
 # puts the drop exact − noisy beside the exact seeds. This script sequences the freeze's own commands; it may be
 # newer than the freeze (the freeze's checkout need not have it).
 # Usage: scripts/confirm_noisy.sh FROZEN RUNS [PRESET]   (PRESET: calibrated or cluttered; default calibrated;
-# FREEZE=<preset>-N for a later freeze of the preset)
+# FREEZE=<preset>-N for a later freeze of the preset; SEEDS="S ..." for some of its seeds)
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 [ $# -ge 2 ] || { echo "usage: scripts/confirm_noisy.sh FROZEN RUNS [PRESET]" >&2; exit 2; }
@@ -22,6 +22,13 @@ disjoint_pool "$PRESET-noisy" || { echo "scripts/confirm_noisy.sh: no noisy vari
 cd "$FROZEN"
 BIN=.venv/bin
 FZ=(); [ -n "${FREEZE:-}" ] && FZ=(--freeze "$FREEZE")
+ALL=$($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET" "${FZ[@]}")
+# SEEDS="S ...": only these of the freeze's seeds. A seed another machine finished and archived is left out on a
+# machine of another CPU type: its regenerated RGB differs there by a few 8-bit values (docs/reproducibility.md),
+# so its records would not be kept and the seed would run a second time.
+for seed in ${SEEDS:-}; do
+  grep -qw "$seed" <<< "$ALL" || { echo "scripts/confirm_noisy.sh: seed $seed is not one of the freeze's:" $ALL >&2; exit 2; }
+done
 $BIN/python -m selfseg.eval.confirm check --preset "$PRESET" "${FZ[@]}"
 OURS=configs/ours-$PRESET.yaml
 SUP=configs/supervised-$PRESET.yaml
@@ -49,7 +56,7 @@ job_evaluate3d() {
   $BIN/evaluate3d --data "$DATA" --config "$OURS" --out "$RESULTS" --quiet "${rows[@]}" || [ $? = 3 ]
 }
 
-for seed in $($BIN/python -m selfseg.eval.confirm seeds --preset "$PRESET" "${FZ[@]}"); do
+for seed in ${SEEDS:-$ALL}; do
   echo "scripts/confirm_noisy.sh: $PRESET-noisy seed $seed ($(date -u +%FT%TZ))"
   RUN=$RUNS/seed-$seed
   DATA=$RUN/data

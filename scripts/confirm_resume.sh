@@ -6,7 +6,8 @@
 # background, keeping every restored fold (KEEP_EARLIER=1) and running only what is missing. The data is generated
 # again; a kept fold counts only where it has the content hash its record names.
 # Usage: [NOISY=1] scripts/confirm_resume.sh PRESET FREEZE CLONE RUNS   (FREEZE: the preset's name for its first
-# freeze, <preset>-N for a later one). Prints where the run's log goes; archive again before the machine ends:
+# freeze, <preset>-N for a later one; with NOISY=1, SEEDS="S ..." runs only those of its seeds, see
+# scripts/confirm_noisy.sh). Prints where the run's log goes; archive again before the machine ends:
 #   .venv/bin/python -m selfseg.eval.confirm archive --preset PRESET --freeze FREEZE --runs RUNS [--noisy]
 set -euo pipefail
 [ $# = 4 ] || { echo "usage: scripts/confirm_resume.sh PRESET FREEZE CLONE RUNS" >&2; exit 2; }

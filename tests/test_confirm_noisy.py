@@ -1,5 +1,6 @@
 """scripts/confirm_noisy.sh: the noisy rows run only from a checkout of the freeze, only for presets with a
 noisy variant (one line, exit 2, nothing run)."""
+import os
 import subprocess
 from pathlib import Path
 
@@ -23,6 +24,15 @@ def test_a_checkout_that_is_not_the_freeze_runs_nothing(tmp_path):
     assert r.returncode == 2 and "that is a new freeze" in r.stderr and "seed" not in r.stdout
     assert list((tmp_path / "runs").iterdir()) == []
     assert _run(ROOT).returncode == 2  # usage
+
+
+def test_a_seed_that_is_not_the_freezes_is_refused_before_anything_runs(tmp_path):
+    """SEEDS restricts the run to some of the freeze's seeds; any other seed is refused in one line, exit 2."""
+    r = subprocess.run(["bash", str(SCRIPT), str(ROOT), str(tmp_path / "runs"), "calibrated"], capture_output=True,
+                       text=True, timeout=120, env={**os.environ, "SEEDS": "963040 123456"})
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert r.stderr.startswith("scripts/confirm_noisy.sh: seed 123456 is not one of the freeze's: 963040 487063 247166")
+    assert list((tmp_path / "runs").iterdir()) == []
 
 
 RESUME = ROOT / "scripts" / "confirm_resume.sh"

@@ -16,6 +16,7 @@ from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
 from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, batch_items, load_embedding_net, make_batch,
                                   train_embedding, training_batches)
+from selfseg.method import train as train_module
 from selfseg.registry import get_method_class
 
 torch.set_num_threads(2)
@@ -418,6 +419,29 @@ def test_speed_settings_train_the_same_run_to_rounding_and_resume_bitwise(tmp_pa
     assert y.dtype == torch.float32 and torch.allclose(y.norm(dim=1), torch.ones(1, 24, 40), atol=1e-5)
     with pytest.raises(ValueError, match="precision"):
         tiny_cfg(precision="fp16")
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_precision_auto_trains_as_the_precision_the_device_runs_natively(tmp_path, monkeypatch, capfd, native):
+    """'auto' is bf16 where the device runs bfloat16 natively and float32 elsewhere: the same weights and resume key
+    as the explicit run (whose finished weights it reuses); explicit bf16 without native support warns, once."""
+    monkeypatch.setattr(train_module, "native_bf16", lambda device: native)
+    monkeypatch.setattr(train_module, "_WARNED", set())
+    explicit = "bf16" if native else "fp32"
+    w = train_embedding(SyntheticSource(), tiny_cfg(precision=explicit), SMALL_NET, tmp_path / "explicit",
+                        progress=False)
+    w_auto = train_embedding(SyntheticSource(), tiny_cfg(precision="auto"), SMALL_NET, tmp_path / "auto",
+                             progress=False)
+    a, b = (torch.load(p, weights_only=True) for p in (w, w_auto))
+    assert a["key_hash"] == b["key_hash"] and all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
+    assert train_embedding(SyntheticSource(crash_after=0), tiny_cfg(precision="auto"), SMALL_NET, tmp_path / "explicit",
+                           progress=False) == w
+    assert json.loads((tmp_path / "auto" / "training_log.json").read_text())["config"]["train"]["precision"] == explicit
+    assert "without native bfloat16" not in capfd.readouterr().err
+    if not native:
+        train_embedding(SyntheticSource(), tiny_cfg(precision="bf16", steps=2), SMALL_NET, tmp_path / "bf16",
+                        progress=False)
+        assert capfd.readouterr().err.count("precision bf16 on a cpu without native bfloat16") == 1
 
 
 def test_finished_run_is_reused_and_other_settings_refused(tmp_path):
