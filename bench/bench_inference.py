@@ -181,8 +181,9 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg:
     return out
 
 
-def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device) -> dict:
-    """Training steps under each of TRAIN_VARIANTS, interleaved (one step of each in turn, ``steps`` rounds after a
+def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device,
+                   variants: tuple[str, ...] = tuple(TRAIN_VARIANTS)) -> dict:
+    """Training steps under each of ``variants`` (of TRAIN_VARIANTS; "fp32" among them), interleaved (one step of each in turn, ``steps`` rounds after a
     warm-up round), so a change in the machine's load hits every variant alike: {variant: timings}, with the
     speed-up of each variant's fastest step over float32's. Each step makes its own batch here. Where training makes
     its batches ahead in threads (a GPU), float32 training as train_embedding runs it is timed after them
@@ -191,8 +192,8 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
     runs = {}
-    for variant, settings in TRAIN_VARIANTS.items():
-        cfg = replace(train_cfg, **settings)
+    for variant in variants:
+        cfg = replace(train_cfg, **TRAIN_VARIANTS[variant])
         torch.manual_seed(0)
         net = new_embedding_net(net_cfg, cfg, device)
         runs[variant] = (cfg, net, torch.optim.AdamW(net.parameters(), lr=cfg.lr), [], [])
@@ -272,6 +273,9 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
     ap.add_argument("--parts", default="inference,training", help="what to time: inference, training or both")
+    ap.add_argument("--variants", default=",".join(TRAIN_VARIANTS),
+                    help=f"training variants to time, fp32 among them (of {', '.join(TRAIN_VARIANTS)}; bf16 is "
+                         f"emulated and 10× slower on a CPU without AVX512-BF16 or AMX)")
     ap.add_argument("--method-config", action="append", default=[], metavar="YAML",
                     help="time the network as an embedding method's config file sets it, instead of the presets")
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
@@ -284,6 +288,9 @@ def main() -> None:
     args.parts = set(args.parts.split(","))
     if not args.parts or not args.parts <= {"inference", "training"}:
         ap.error(f"--parts: inference, training or both, got {','.join(sorted(args.parts))}")
+    args.variants = tuple(args.variants.split(","))
+    if "fp32" not in args.variants or not set(args.variants) <= set(TRAIN_VARIANTS):
+        ap.error(f"--variants: fp32 and any of {', '.join(TRAIN_VARIANTS)}, got {','.join(args.variants)}")
     load_at_start = os.getloadavg()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -303,7 +310,7 @@ def main() -> None:
             entry["inference"] = bench_inference(net_cfg, cluster_cfg, net_train_cfg, args.repeats, args.batch,
                                                  device, flip, square)
         if "training" in args.parts:
-            entry["training"] = bench_training(net_cfg, net_train_cfg, args.train_steps, device)
+            entry["training"] = bench_training(net_cfg, net_train_cfg, args.train_steps, device, args.variants)
             for variant, t in entry["training"].items():
                 print(f"  training ({variant}): {t['images_per_s']} images/s, {t['minutes_per_800_steps']} min per "
                       f"800 steps, ×{t['speedup_vs_fp32']} (median ×{t['median_speedup_vs_fp32']}; batch "
