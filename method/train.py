@@ -104,9 +104,10 @@ class SpeedSettings:
         """The context of the network's forward pass in training (bfloat16 autocast, or nothing)."""
         bf16 = self.precision_on(device) == "bf16"
         if bf16 and not native_bf16(device):
-            _warn_once(f"precision bf16 on a {device.type} without native bfloat16 (torch CPU capability "
-                       f"{torch.backends.cpu.get_cpu_capability()}): emulated, "
-                       f"about 10× slower than float32 here; precision 'auto' trains in float32 on such a device")
+            what = f"cpu (torch capability {torch.backends.cpu.get_cpu_capability()})" if device.type == "cpu" \
+                else str(device)
+            _warn_once(f"precision bf16 on a {what} without native bfloat16: emulated and slow (11-14× float32's "
+                       f"step on an AVX2 CPU); precision 'auto' trains in float32 on such a device")
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
 
     def layout(self, x: torch.Tensor | nn.Module):
@@ -141,8 +142,8 @@ def settings_key(d):
     the settings' device, so an "auto" run equals the explicit run of that precision."""
     if not isinstance(d, dict):
         return d
-    if d.get("precision") == "auto" and "device" in d:
-        d = {**d, "precision": SpeedSettings(precision="auto").precision_on(resolve_device(d["device"]))}
+    if d.get("precision") == "auto":
+        d = {**d, "precision": SpeedSettings(precision="auto").precision_on(resolve_device(d.get("device", "auto")))}
     return {k: settings_key(v) for k, v in d.items() if k not in _RUNTIME_FIELDS}
 
 
