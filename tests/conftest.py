@@ -24,14 +24,20 @@ def analytic_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """The tiny preset with Workbench images (ground truth identical to Cycles'), generated once per
-    test session by the ``generate_scenes`` command (so with its pinned numerical libraries, as users get it)
-    and shared by every module that needs real generated scenes."""
+    test run by the ``generate_scenes`` command (so with its pinned numerical libraries, as users get it)
+    and shared by every module that needs real generated scenes. Under pytest-xdist the workers share one
+    copy: the first generates it under a lock, the others wait and find it finished (the command resumes)."""
     import subprocess
 
-    out = tmp_path_factory.getbasetemp() / "tiny-workbench" / "data"
+    from selfseg.fileio import exclusive_lock
+
+    base = tmp_path_factory.getbasetemp()
+    run_dir = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the run's, above the workers'
+    out = run_dir / "tiny-workbench" / "data"
     cmd = [sys.executable, "-m", "selfseg.generate.cli", "--preset", "tiny", "--renderer", "workbench", "--out",
            str(out), "--workers", "2", "--quiet"]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+    with exclusive_lock(run_dir / "tiny-workbench.lock", "the test run's tiny dataset", wait=True):
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
     assert run.returncode == 0, run.stderr
     return out
 
