@@ -72,7 +72,9 @@ def machine() -> dict:
 
 
 def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> dict:
-    """The fields every result record starts with: schema, task ("2d" or "3d"), method, config, dataset, code."""
+    """The fields every result record starts with: schema, task ("2d" or "3d"), method, config, dataset, code, and
+    the CPU (its model and :func:`cpu_flags`: they set what ``precision: auto`` trains in, and RGB renders differ
+    between CPU types)."""
     return {
         "schema_version": SCHEMA_VERSION,
         "task": task,
@@ -85,6 +87,7 @@ def provenance(method: str, name: str, config, dataset: Dataset, task: str) -> d
                     "content_hash": dataset.content_hash(), "n_videos": len(dataset.video_ids)},
         "git": dict(git_info()),
         "versions": package_versions(),
+        "cpu": {"model": cpu_model(), "flags": cpu_flags()},  # RGB renders and learned runs differ by CPU type
         "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
 
