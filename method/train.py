@@ -91,8 +91,11 @@ class SpeedSettings:
     precision: str = "fp32"
 
     def check_speed(self) -> None:
+        """Refuse an unknown precision; warn at once (as the config is read) of a bf16 the device would emulate."""
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.precision == "bf16":
+            _warn_if_emulated(resolve_device(getattr(self, "device", "auto")))
 
     def precision_on(self, device: torch.device) -> str:
         """The precision the phase trains in on ``device``: "fp32" or "bf16" ("auto" resolved)."""
@@ -103,11 +106,8 @@ class SpeedSettings:
     def autocast(self, device: torch.device):
         """The context of the network's forward pass in training (bfloat16 autocast, or nothing)."""
         bf16 = self.precision_on(device) == "bf16"
-        if bf16 and not native_bf16(device):
-            what = f"cpu (torch capability {torch.backends.cpu.get_cpu_capability()})" if device.type == "cpu" \
-                else str(device)
-            _warn_once(f"precision bf16 on a {what} without native bfloat16: emulated and slow (11-14× float32's "
-                       f"step on an AVX2 CPU); precision 'auto' trains in float32 on such a device")
+        if bf16:
+            _warn_if_emulated(device)
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
 
     def layout(self, x: torch.Tensor | nn.Module):
@@ -124,6 +124,15 @@ def native_bf16(device: torch.device) -> bool:
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported()
     return device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+
+
+def _warn_if_emulated(device: torch.device) -> None:
+    """One warning line per process when bf16 training on ``device`` would be emulated."""
+    if not native_bf16(device):
+        what = f"cpu (torch capability {torch.backends.cpu.get_cpu_capability()})" if device.type == "cpu" \
+            else str(device)
+        _warn_once(f"precision bf16 on a {what} without native bfloat16: emulated and slow (11-14× float32's "
+                   f"step on an AVX2 CPU); precision 'auto' trains in float32 on such a device")
 
 
 _WARNED: set[str] = set()
