@@ -122,7 +122,7 @@ def native_bf16(device: torch.device) -> bool:
     """Whether ``device`` runs bfloat16 convolutions natively: a CUDA GPU with bf16, or a CPU with AVX512-BF16 or
     AMX. Elsewhere oneDNN emulates them (measured: 11-14× slower than float32 on an AVX2 AMD EPYC)."""
     if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
+        return torch.cuda.is_bf16_supported(including_emulation=False)
     return device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
 
 
