@@ -452,10 +452,13 @@ def _records(results: Path) -> list[Path]:
 
 def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool) -> str:
     """An archived seed's README: its state, dataset and runs (names and fold counts; no score is read)."""
-    runs, hashes = {}, set()
+    runs, hashes, cpus = {}, set(), set()
     for f in _records(run / RUN_RESULTS_DIR):
         if f.suffix == ".json":
-            hashes.add(read_json(run / RUN_RESULTS_DIR / f).get("dataset", {}).get("content_hash", "?")[:16])
+            r = read_json(run / RUN_RESULTS_DIR / f)
+            hashes.add(r.get("dataset", {}).get("content_hash", "?")[:16])
+            if "cpu" in r:  # records since the CPU was recorded
+                cpus.add(f"{r['cpu']['model']} ({', '.join(r['cpu']['flags']) or 'no listed flags'})")
             counts = runs.setdefault(f.parts[2], {})  # <top>/<dataset>/<name>/fold<k>.json
             counts[f.parts[0]] = counts.get(f.parts[0], 0) + 1
     timings = run / RUN_TIMINGS_TSV
@@ -470,8 +473,10 @@ def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool) -> str:
     return (f"Seed {seed} of the `{rec['name']}` freeze ({rec['commit'][:7]}), {state} when archived ({now}) by "
             f"`python -m selfseg.eval.confirm archive`: the fold records of its run, copied from the run folder.\n"
             f"Dataset content hash {', '.join(sorted(hashes)) or '(no record yet)'}. Records: {listed or 'none'}.\n"
+            + (f"Made on: {'; '.join(sorted(cpus))}.\n" if cpus else "") +
             f"To go on with it on another machine: `{'NOISY=1 ' if noisy else ''}scripts/confirm_resume.sh {rec['preset']} {rec['name']} CLONE RUNS` "
-            f"(restores these records and keeps them where the regenerated data has the same content hash).\n"
+            f"(restores these records and keeps them where the regenerated data has the same content hash, which "
+            f"takes a CPU of the type that made them: Cycles' RGB differs on another, docs/reproducibility.md).\n"
             f"Archiving reads names and fold counts only, no score.\n")
 
 

@@ -11,6 +11,7 @@ from selfseg.eval.confirm import (BEGIN, DEVELOPMENT_SEEDS, END, NAMED_BEGIN, RO
 from selfseg.eval.layout import FAILED_JSON
 from selfseg.eval.leaderboard import BEGIN as BUILD_BEGIN
 from selfseg.eval.pooled import paired, pooled_videos, score
+from selfseg.eval.provenance import cpu_model
 from selfseg.fileio import read_json, write_json
 
 
@@ -316,6 +317,7 @@ def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, t
     readme = (dest / "seed-101/README.md").read_text()
     assert "**finished**" in readme and "`ours` 3 scored" in readme and "`depth-clustering` 3 scored" in readme
     assert "1.000" not in readme and "IoU" not in readme  # names and counts, no score
+    assert f"Made on: {cpu_model()} (" in readme  # the CPU type its data's RGB needs to be kept on resuming
     assert "**not finished**" in (dest / "seed-202/README.md").read_text()  # no timings: cut off or still going
     assert confirm.archive(rec, src, dest) == lines  # idempotent
     # a resumed queue scoring a finished fold again (same run: new time stamp and timings) leaves the archive as it
