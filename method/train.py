@@ -126,23 +126,17 @@ def native_bf16(device: torch.device) -> bool:
     return device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
 
 
+_WARNED: set[str] = set()  # devices _warn_if_emulated has warned about in this process
+
+
 def _warn_if_emulated(device: torch.device) -> None:
-    """One warning line per process when bf16 training on ``device`` would be emulated."""
-    if not native_bf16(device):
-        what = f"cpu (torch capability {torch.backends.cpu.get_cpu_capability()})" if device.type == "cpu" \
-            else str(device)
-        _warn_once(f"precision bf16 on a {what} without native bfloat16: emulated and slow (11-14× float32's "
-                   f"step on an AVX2 CPU); precision 'auto' trains in float32 on such a device")
-
-
-_WARNED: set[str] = set()
-
-
-def _warn_once(msg: str) -> None:
-    """``msg`` on stderr, once per process."""
-    if msg not in _WARNED:
-        _WARNED.add(msg)
-        print(f"warning: {msg}", file=sys.stderr, flush=True)
+    """One warning line on stderr (per process and device) when bf16 training on ``device`` would be emulated."""
+    if native_bf16(device) or str(device) in _WARNED:
+        return
+    _WARNED.add(str(device))
+    what = f"cpu (torch capability {torch.backends.cpu.get_cpu_capability()})" if device.type == "cpu" else str(device)
+    print(f"warning: precision bf16 on a {what} without native bfloat16: emulated and slow (11-14× float32's step on "
+          f"an AVX2 CPU); precision 'auto' trains in float32 on such a device", file=sys.stderr, flush=True)
 
 
 def settings_key(d):
@@ -152,7 +146,7 @@ def settings_key(d):
     if not isinstance(d, dict):
         return d
     if d.get("precision") == "auto":
-        d = {**d, "precision": SpeedSettings(precision="auto").precision_on(resolve_device(d.get("device", "auto")))}
+        d = {**d, "precision": "bf16" if native_bf16(resolve_device(d.get("device", "auto"))) else "fp32"}
     return {k: settings_key(v) for k, v in d.items() if k not in _RUNTIME_FIELDS}
 
 
