@@ -318,12 +318,13 @@ def claim_row(a: str, b: str, seeds: list[Seed]) -> str:
 
 def noise_markdown(rec: dict, fresh: list[Seed], three_d: dict, noisy: list[Seed], noisy_3d: dict) -> list[str]:
     """The noisy-depth subsection: each method on the fresh seeds with exact and with noisy depth (same scenes,
-    RGB, masks and poses), the drop exact − noisy paired per test video, and ``ours``'s claims under noise."""
+    masks and poses; RGB the same on one CPU type), the drop exact − noisy paired per test video, and ``ours``'s claims under noise."""
     labels = {s.label for s in noisy}
     exact = [s for s in fresh if s.label in labels]
     lines = ["", f"### The same seeds with noisy depth ({rec['preset']}-noisy)", "",
-             f"The fresh seeds again with the depth-noise model on (`--depth-noise kinect`: the same scenes, RGB, "
-             f"masks and poses, the depth a Kinect v1 would measure), run with the same frozen configs, never tuned on "
+             f"The fresh seeds again with the depth-noise model on (`--depth-noise kinect`: the same scenes, masks "
+             f"and poses, the depth a Kinect v1 would measure; the same RGB where both ran on one CPU type, since "
+             f"Cycles' renders differ by a few 8-bit values between types), run with the same frozen configs, never tuned on "
              f"noise ({len(noisy)} of {len(rec['seeds'])} seeds finished). Drop = exact − noisy IoU per test video "
              "(same frames), 95 % CI by bootstrap over videos:", "",
              "| method | exact | noisy | drop | 95 % CI | videos worse with noise | verdict |", "|---|---|---|---|---|---|---|"]
