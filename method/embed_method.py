@@ -44,10 +44,15 @@ class EmbeddingMethodConfig:
     # inference with train.fg_crop and mask_background: each foreground box grown to a square (masked background
     # beyond it, same scale), so every frame is one input shape: frames batched, a CUDA graph on a GPU
     test_square_crop: bool = False
+    # inference at another output stride than the network trained at (8 or 16; 0: the same), with the same weights
+    # (train.at_output_stride): DeepLabV3 trains at 16 and segments at 8. The segmenting network only, as test_flip.
+    test_output_stride: int = 0
 
     def __post_init__(self):
         if self.frame_stride < 1:
             raise ValueError(f"frame_stride must be ≥ 1, got {self.frame_stride}")
+        if self.test_output_stride not in (0, 8, 16):
+            raise ValueError(f"test_output_stride must be 0 (as trained), 8 or 16, got {self.test_output_stride}")
         if self.test_square_crop and not (self.train.fg_crop and self.train.mask_background):
             raise ValueError("test_square_crop needs train.fg_crop and train.mask_background (the square's padding "
                              "is masked background)")
@@ -89,7 +94,7 @@ class EmbeddingMethodBase(Method):
 
     def load(self, weights_path: str | Path) -> None:
         """Use the network saved at ``weights_path`` (written by :func:`train_embedding`)."""
-        self._net = load_embedding_net(weights_path, self._device)
+        self._net = load_embedding_net(weights_path, self._device, self.config.test_output_stride)
         self.weights_path = Path(weights_path)
 
     def embed(self, frame: np.ndarray, fg_mask: np.ndarray | None = None) -> np.ndarray:

@@ -26,7 +26,7 @@ import sys
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator, Protocol, Sequence
 
@@ -630,13 +630,25 @@ def train_embedding(source: LabelSource, cfg: TrainConfig, net_cfg: NetConfig, o
     return weights
 
 
-def load_embedding_net(path: str | Path, device: str | torch.device = "cpu") -> EmbeddingNet:
-    """Load ``weights.pt`` written by :func:`train_embedding` → network in eval mode on ``device``."""
+def at_output_stride(net_cfg: NetConfig, output_stride: int) -> NetConfig:
+    """``net_cfg`` at ``output_stride`` (8 or 16) with weights of the same shapes: the dilated stages change and the
+    ASPP rates scale by the trained stride ÷ ``output_stride``, as DeepLabV3 trains at 16 and segments at 8 with
+    (6, 12, 18) → (12, 24, 36)."""
+    if output_stride == net_cfg.output_stride:
+        return net_cfg
+    scale = net_cfg.output_stride / output_stride
+    return replace(net_cfg, output_stride=output_stride, aspp_rates=tuple(int(r * scale) for r in net_cfg.aspp_rates))
+
+
+def load_embedding_net(path: str | Path, device: str | torch.device = "cpu", output_stride: int = 0) -> EmbeddingNet:
+    """Load ``weights.pt`` written by :func:`train_embedding` → network in eval mode on ``device``; at the output
+    stride it trained at, or with ``output_stride`` (8 or 16) rebuilt at that one (:func:`at_output_stride`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no trained weights (run the method's fit first)")
     state = torch.load(path, map_location="cpu", weights_only=True)
-    net = EmbeddingNet(from_dict(NetConfig, state["net_cfg"]))
+    net_cfg = from_dict(NetConfig, state["net_cfg"])
+    net = EmbeddingNet(at_output_stride(net_cfg, output_stride) if output_stride else net_cfg)
     net.load_state_dict(state["state_dict"])
     return net.to(resolve_device(str(device))).eval()
 

@@ -14,8 +14,8 @@ from selfseg.method.embed_method import EmbeddingMethodConfig
 from selfseg.method.features import embed_frames, foreground_box, mask_input, segment_features
 from selfseg.method.meanshift import MeanShiftConfig
 from selfseg.method.network import RGB_MEAN, EmbeddingNet, NetConfig
-from selfseg.method.train import (FrameLabelSource, TrainConfig, augment, batch_items, load_embedding_net, make_batch,
-                                  train_embedding, training_batches)
+from selfseg.method.train import (FrameLabelSource, TrainConfig, at_output_stride, augment, batch_items,
+                                  load_embedding_net, make_batch, train_embedding, training_batches)
 from selfseg.method import train as train_module
 from selfseg.registry import get_method_class
 
@@ -442,6 +442,33 @@ def test_precision_auto_trains_as_the_precision_the_device_runs_natively(tmp_pat
         train_embedding(SyntheticSource(), tiny_cfg(precision="bf16", steps=2), SMALL_NET, tmp_path / "bf16",
                         progress=False)
         assert capfd.readouterr().err.count("precision bf16 on a cpu (torch capability") == 1
+
+
+def test_a_network_trained_at_stride_16_segments_at_8_with_the_same_weights(tmp_path):
+    """load_embedding_net(output_stride=8) rebuilds a stride-16 network at 8: layer3 undilated → dilation 2 without
+    its stride, layer4 dilation 2 → 4, ASPP rates doubled, every weight as trained; unit embeddings of the frame's
+    size. At the trained stride (or 0) it is the plain load; the method config takes 8, 16 or 0 only."""
+    w = train_embedding(SyntheticSource(), tiny_cfg(steps=2), SMALL_NET, tmp_path, progress=False)
+    plain, at16, at8 = (load_embedding_net(w, output_stride=s) for s in (0, 16, 8))
+    assert at8.encoder.layer3[0].conv1.stride == (1, 1) and at8.encoder.layer3[0].conv1.dilation == (2, 2)
+    assert at8.encoder.layer4[0].conv1.dilation == (4, 4) and plain.encoder.layer4[0].conv1.dilation == (2, 2)
+    assert plain.encoder.layer3[0].conv1.stride == (2, 2)
+    assert [b[0].dilation for b in at8.aspp.branches[1:]] == [(12, 12), (24, 24), (36, 36)]
+    trained = torch.load(w, weights_only=True)["state_dict"]
+    assert all(torch.equal(trained[k], v) for k, v in at8.state_dict().items())
+    x = torch.rand(1, 3, 48, 64)
+    with torch.no_grad():
+        y0, y16, y8 = plain(x), at16(x), at8(x)
+    assert torch.equal(y0, y16) and y8.shape == y0.shape and not torch.allclose(y8, y0)
+    assert torch.allclose(y8.norm(dim=1), torch.ones(1, 48, 64), atol=1e-5)
+    assert at_output_stride(NetConfig(output_stride=8), 16).aspp_rates == (3, 6, 9)
+    sup = get_method_class("supervised")
+    method = sup(sup.config_cls(net=SMALL_NET, test_output_stride=8, device="cpu"), workdir=tmp_path / "work")
+    method.load(w)
+    with torch.no_grad():
+        assert torch.equal(method._net(x), y8)  # the method segments with the network rebuilt at 8
+    with pytest.raises(ValueError, match="test_output_stride"):
+        EmbeddingMethodConfig(test_output_stride=4)
 
 
 def test_finished_run_is_reused_and_other_settings_refused(tmp_path):
