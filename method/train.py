@@ -99,9 +99,7 @@ class SpeedSettings:
 
     def precision_on(self, device: torch.device) -> str:
         """The precision the phase trains in on ``device``: "fp32" or "bf16" ("auto" resolved)."""
-        if self.precision == "auto":
-            return "bf16" if native_bf16(device) else "fp32"
-        return self.precision
+        return resolve_precision(self.precision, device)
 
     def autocast(self, device: torch.device):
         """The context of the network's forward pass in training (bfloat16 autocast, or nothing)."""
@@ -116,6 +114,13 @@ class SpeedSettings:
             return x
         return x.to(memory_format=torch.channels_last) if isinstance(x, nn.Module) else \
             x.contiguous(memory_format=torch.channels_last)
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``precision`` as it trains on ``device``: "auto" → "bf16" where :func:`native_bf16`, else "fp32"."""
+    if precision == "auto":
+        return "bf16" if native_bf16(device) else "fp32"
+    return precision
 
 
 def native_bf16(device: torch.device) -> bool:
@@ -146,7 +151,7 @@ def settings_key(d):
     if not isinstance(d, dict):
         return d
     if d.get("precision") == "auto":
-        d = {**d, "precision": "bf16" if native_bf16(resolve_device(d.get("device", "auto"))) else "fp32"}
+        d = {**d, "precision": resolve_precision("auto", resolve_device(d.get("device", "auto")))}
     return {k: settings_key(v) for k, v in d.items() if k not in _RUNTIME_FIELDS}
 
 
