@@ -67,7 +67,7 @@ from selfseg.eval.aggregate import fmt
 from selfseg.eval.layout import FAILED_DIR, REJECTED_DIR, SCORES_DIR
 from selfseg.eval.leaderboard import load_failures, load_results, replace_generated
 from selfseg.eval.pooled import Seed, frame_mean, paired, pooled_videos, score
-from selfseg.eval.provenance import run_key
+from selfseg.eval.provenance import cpu_flags, cpu_model, run_key
 from selfseg.fileio import FileFormatError, atomic_write_bytes, atomic_write_text, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,6 +79,9 @@ SEED_RESULTS_DIR = SEED_RUN_DIR + "/" + RUN_RESULTS_DIR
 ARCHIVE_DIR = "leaderboards/results/{name}-confirm"  # a freeze's archived seeds (each as SEED_RUN_DIR), committed
 NOISY_ARCHIVE_DIR = "leaderboards/results/{name}-noisy-confirm"  # the same for its noisy-depth rows
 ARCHIVE_README = SEED_RUN_DIR + "/README.md"  # what an archived seed holds (names and fold counts, no scores)
+# the CPU of each archived fold record that does not name its own (made by a freeze from before records named it):
+# {record path: {"model", "flags", "source"}}, the machine that archived it from its own run folder
+ARCHIVE_MADE_ON = SEED_RUN_DIR + "/made_on.json"
 ARCHIVED_DIRS = (SCORES_DIR, FAILED_DIR, REJECTED_DIR)  # the parts of a results folder that are fold records
 # Paths that may change after the freeze without making it a new one: what is published, not what computes it.
 UNFROZEN = ("leaderboards", "docs", "README.md")
@@ -451,9 +454,12 @@ def _records(results: Path) -> list[Path]:
     return out
 
 
-def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool) -> str:
-    """An archived seed's README: its state, dataset and runs (names and fold counts; no score is read)."""
+def _seed_readme(rec: dict, seed: int, run: Path, noisy: bool, made_on: dict) -> str:
+    """An archived seed's README: its state, dataset, runs (names and fold counts; no score is read) and the CPUs
+    its records were made on (their own field, else ``made_on``: :data:`ARCHIVE_MADE_ON`'s entries)."""
     runs, hashes, cpus = {}, set(), set()
+    for m in made_on.values():
+        cpus.add(f"{m['model']} ({', '.join(m['flags']) or 'no listed flags'}; {m['source']})")
     for f in _records(run / RUN_RESULTS_DIR):
         if f.suffix == ".json":
             r = read_json(run / RUN_RESULTS_DIR / f)
@@ -519,9 +525,16 @@ def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]
                 and _run_identity(read_json(into / f)) == _run_identity(read_json(run / f))]
         kept += [f.with_name(f.name.removesuffix(".json") + ".frames.jsonl") for f in kept]
         written = _copy(run, into, [f for f in files if f not in kept], replace=True)
+        made_on_json = dest / ARCHIVE_MADE_ON.format(seed=s)
+        made_on = read_json(made_on_json) if made_on_json.is_file() else {}
+        here = {"model": cpu_model(), "flags": cpu_flags(), "source": "the machine that archived it from its run"}
+        unnamed = {str(f): here for f in written if f.suffix == ".json" and "cpu" not in read_json(run / f)}
+        if unnamed:  # a record written here, not restored (a restored one is kept), was made on this machine
+            made_on = {**made_on, **unnamed}
+            write_json(made_on_json, made_on)
         readme = dest / ARCHIVE_README.format(seed=s)
         if written or not readme.is_file():
-            atomic_write_text(readme, _seed_readme(rec, s, run, noisy))
+            atomic_write_text(readme, _seed_readme(rec, s, run, noisy, made_on))
         lines.append(f"seed {s}: {sum(f.suffix == '.json' for f in files)} fold records → {into}")
     return lines
 

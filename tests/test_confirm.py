@@ -348,3 +348,32 @@ def test_archive_and_restore_carry_the_finished_folds_to_another_machine(runs, t
     board(rec, fresh, [], b)
     assert a.read_text() == b.read_text()
     assert "0 fold records restored" in confirm.restore(rec, dest, fresh)[0]  # what is there stays
+
+
+def test_archive_names_the_cpu_of_records_made_before_records_named_it(runs, tmp_path):
+    """A freeze from before records named their CPU: archive notes this machine for the records it copies from its
+    own run folder (made_on.json, named in the README), and not for records restored from another machine."""
+    root, rec = runs
+    rec = {**rec, "name": "analytic"}
+    src = tmp_path / "runs"
+    shutil.copytree(root, src)
+    for path in (src / "seed-101/results").rglob("fold*.json"):
+        write_json(path, {k: v for k, v in read_json(path).items() if k != "cpu"})
+    dest = tmp_path / "archive"
+    confirm.archive(rec, src, dest)
+    made_on = read_json(dest / "seed-101/made_on.json")
+    assert len(made_on) == 6 and {m["model"] for m in made_on.values()} == {cpu_model()}
+    assert f"Made on: {cpu_model()} (" in (dest / "seed-101/README.md").read_text()
+    assert "the machine that archived it" in (dest / "seed-101/README.md").read_text()
+    assert not (dest / "seed-202/made_on.json").exists()  # its records name their CPU themselves
+    other = {"model": "Another CPU", "flags": ["avx2"], "source": "the machine that archived it from its run"}
+    write_json(dest / "seed-101/made_on.json", {k: other for k in made_on})  # as archived on another machine
+    fresh = tmp_path / "fresh"
+    confirm.restore(rec, dest, fresh)
+    for path in (fresh / "seed-202/results").rglob("fold*.json"):  # a fold run here after the restore
+        write_json(path, {k: v for k, v in read_json(path).items() if k != "cpu"} | {"git": {"commit": "e" * 40}})
+        break
+    confirm.archive(rec, fresh, dest)
+    assert {m["model"] for m in read_json(dest / "seed-101/made_on.json").values()} == {"Another CPU"}  # restored: kept
+    made_here = read_json(dest / "seed-202/made_on.json")  # the one record written from this run folder
+    assert len(made_here) == 1 and next(iter(made_here.values())) == next(iter(made_on.values()))
