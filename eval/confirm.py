@@ -528,9 +528,13 @@ def archive(rec: dict, runs: Path, dest: Path, noisy: bool = False) -> list[str]
         made_on_json = dest / ARCHIVE_MADE_ON.format(seed=s)
         made_on = read_json(made_on_json) if made_on_json.is_file() else {}
         here = {"model": cpu_model(), "flags": cpu_flags(), "source": "the machine that archived it from its run"}
-        unnamed = {str(f): here for f in written if f.suffix == ".json" and "cpu" not in read_json(run / f)}
-        if unnamed:  # a record written here, not restored (a restored one is kept), was made on this machine
-            made_on = {**made_on, **unnamed}
+        # a record written here, not restored (a restored one is kept), was made on this machine; an entry of a
+        # record replaced by one that names its CPU goes
+        records = [f for f in written if f.suffix == ".json"]
+        new = {k: v for k, v in made_on.items() if k not in {f.as_posix() for f in records}}
+        new |= {f.as_posix(): here for f in records if "cpu" not in read_json(run / f)}
+        if new != made_on:
+            made_on = new
             write_json(made_on_json, made_on)
         readme = dest / ARCHIVE_README.format(seed=s)
         if written or not readme.is_file():
