@@ -46,12 +46,18 @@ def package_versions() -> dict:
 SPEED_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")  # cpu_flags: what a machine record names
 
 
-def cpu_model() -> str:
-    """The CPU's model name (Linux: /proc/cpuinfo), else what ``platform`` reports."""
-    cpuinfo = Path("/proc/cpuinfo")
-    models = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
-              if ln.startswith("model name")] if cpuinfo.is_file() else []
-    return models[0] if models else platform.processor() or platform.machine()
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name with its family and model numbers (Linux: ``cpuinfo``'s first processor; "AMD EPYC,
+    family 25 model 17"), else what ``platform`` reports. The numbers tell CPU types apart whose names do not (a
+    virtual machine's Zen 4 and Zen 5 are both "AMD EPYC")."""
+    fields = {}
+    for ln in (cpuinfo.read_text().split("\n\n")[0].splitlines() if cpuinfo.is_file() else []):
+        key, _, value = ln.partition(":")
+        fields[key.strip()] = value.strip()
+    if "model name" not in fields:
+        return platform.processor() or platform.machine()
+    numbers = f", family {fields['cpu family']} model {fields['model']}" if "cpu family" in fields else ""
+    return fields["model name"] + numbers
 
 
 def cpu_flags() -> list[str]:

@@ -13,7 +13,7 @@ from selfseg.eval.folds import EvalOptions, fold_split, make_folds, select_test_
 from selfseg.eval.layout import WORK_DIR
 from selfseg.eval.metrics import METRIC_KEYS
 from selfseg.eval.protocol import run_fold
-from selfseg.eval.provenance import git_info
+from selfseg.eval.provenance import cpu_model, git_info
 from selfseg.guard import GroundTruthAccessError
 from selfseg.method_api import Method
 from selfseg.registry import get_method_class
@@ -204,3 +204,18 @@ def test_git_info_is_the_code_as_loaded(tmp_path, monkeypatch):
         assert git_info()["commit"] == git("rev-parse", "HEAD") != seen["commit"]
     finally:
         git_info.cache_clear()
+
+
+def test_cpu_model_tells_apart_cpu_types_of_one_name(tmp_path):
+    """Two CPU types a virtual machine names alike (Zen 4 and Zen 5, both "AMD EPYC") get different model strings:
+    the family and model numbers of the first processor are in them; without a model name the platform's answer."""
+    def cpuinfo(family, model):
+        cpu = (f"processor\t: {{n}}\nvendor_id\t: AuthenticAMD\ncpu family\t: {family}\nmodel\t\t: {model}\n"
+               "model name\t: AMD EPYC\nflags\t\t: fpu avx2\n")
+        f = tmp_path / f"cpuinfo-{family}-{model}"
+        f.write_text(cpu.format(n=0) + "\n" + cpu.format(n=1).replace(f": {model}\n", ": 99\n"))
+        return f
+    zen4, zen5 = cpu_model(cpuinfo(25, 17)), cpu_model(cpuinfo(26, 2))
+    assert zen4 == "AMD EPYC, family 25 model 17" and zen5 == "AMD EPYC, family 26 model 2"
+    (tmp_path / "bare").write_text("processor\t: 0\n")
+    assert cpu_model(tmp_path / "bare") not in (zen4, zen5, "")
