@@ -46,14 +46,20 @@ def package_versions() -> dict:
 SPEED_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")  # cpu_flags: what a machine record names
 
 
-def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The CPU's model name with its family and model numbers (Linux: ``cpuinfo``'s first processor; "AMD EPYC,
-    family 25 model 17"), else what ``platform`` reports. The numbers tell CPU types apart whose names do not (a
-    virtual machine's Zen 4 and Zen 5 are both "AMD EPYC")."""
+def _first_cpu(cpuinfo: Path) -> dict[str, str]:
+    """The fields of ``cpuinfo``'s first processor (Linux /proc/cpuinfo; empty where there is none)."""
     fields = {}
     for ln in (cpuinfo.read_text().split("\n\n")[0].splitlines() if cpuinfo.is_file() else []):
         key, _, value = ln.partition(":")
         fields[key.strip()] = value.strip()
+    return fields
+
+
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name with its family and model numbers (Linux: ``cpuinfo``'s first processor; "AMD EPYC,
+    family 25 model 17"), else what ``platform`` reports. The numbers tell CPU types apart whose names do not (a
+    virtual machine's Zen 4 and Zen 5 are both "AMD EPYC")."""
+    fields = _first_cpu(cpuinfo)
     if "model name" not in fields:
         return platform.processor() or platform.machine()
     numbers = f", family {fields['cpu family']} model {fields['model']}" if "cpu family" in fields else ""
@@ -63,9 +69,7 @@ def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
 def cpu_flags() -> list[str]:
     """Which of the instruction sets that set the speed of training (:data:`SPEED_FLAGS`) the CPU has (Linux:
     /proc/cpuinfo; else empty). Without avx512_bf16 or amx_bf16, bf16 training is emulated and slow."""
-    cpuinfo = Path("/proc/cpuinfo")
-    flags = next((ln.split(":", 1)[1].split() for ln in cpuinfo.read_text().splitlines() if ln.startswith("flags")),
-                 []) if cpuinfo.is_file() else []
+    flags = _first_cpu(Path("/proc/cpuinfo")).get("flags", "").split()
     return [f for f in SPEED_FLAGS if f in flags]
 
 
