@@ -20,7 +20,9 @@ several runs, since the cores may be
 shared (load average recorded). Training throughput is full training steps (batch, crop and
 augmentation of the default TrainConfig) on the device, also as minutes per 800 steps, in float32 and with
 the speed settings (channels_last; channels_last and bf16 autocast), one step of each in turn, each with its
-speed-up over float32 (fastest and median step); on a GPU also float32 with the batches made ahead in threads, as
+speed-up over float32 (fastest and median step) and its first step's time; ``--variants`` adds bf16 with torch.compile
+(``compile``: the network up to its stride-4 embeddings; ``compile_whole``), each with its first step's gradients
+against the eager bf16 step's (``grad_cosine_vs_bf16``, ``grad_norm_ratio_vs_bf16``); on a GPU also float32 with the batches made ahead in threads, as
 training makes them (``selfseg.method.train.training_batches``). On CUDA the network and the mode finding run as
 CUDA graphs (``selfseg.method.cuda_graphs``); the single-frame figures without them are reported beside
 (``*_eager``). ``--parts training`` times training alone. ``--method-config YAML`` (repeatable) times, instead of
@@ -60,7 +62,15 @@ SIZES = ((320, 240), (640, 480))
 # so a method config that trains in bf16 is still timed in float32 under "fp32".
 TRAIN_VARIANTS = {"fp32": {"channels_last": False, "precision": "fp32"},
                   "channels_last": {"channels_last": True, "precision": "fp32"},
-                  "bf16": {"channels_last": True, "precision": "bf16"}}
+                  "bf16": {"channels_last": True, "precision": "bf16"},
+                  "compile": {"channels_last": True, "precision": "bf16"},
+                  "compile_whole": {"channels_last": True, "precision": "bf16"}}
+# bf16 training with torch.compile (inductor), timed beside "bf16", whose gradients they are checked against: the
+# network up to its stride-4 embeddings compiled, the float32 upsampling and normalisation eager ("compile"), or the
+# whole network ("compile_whole": in torch 2.13 on the CPU every parameter's gradient comes out zero, a fault of
+# inductor with the autocast-disabled block inside EmbeddingNet.forward; aot_eager is right).
+COMPILED = {"compile": "stride4", "compile_whole": "whole"}
+DEFAULT_VARIANTS = ("fp32", "channels_last", "bf16")
 
 
 def synthetic_frame(w: int, h: int, n_objects: int = 8, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +192,7 @@ def bench_inference(net_cfg: NetConfig, cluster_cfg: MeanShiftConfig, train_cfg:
 
 
 def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, device: torch.device,
-                   variants: tuple[str, ...] = tuple(TRAIN_VARIANTS)) -> dict:
+                   variants: tuple[str, ...] = DEFAULT_VARIANTS) -> dict:
     """Training steps under each of ``variants`` (of TRAIN_VARIANTS; "fp32" among them), interleaved (one step of each in turn, ``steps`` rounds after a
     warm-up round), so a change in the machine's load hits every variant alike: {variant: timings}, with the
     speed-up of each variant's fastest step over float32's. Each step makes its own batch here. Where training makes
@@ -191,28 +201,34 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
     ``run_s_per_step`` is the whole run's wall time per step, the pool's start included)."""
     rgb, inst = synthetic_frame(640, 480)
     source = [(rgb, inst - 1)]
-    runs = {}
+    runs, models, first_s, grads = {}, {}, {}, {}
     for variant in variants:
         cfg = replace(train_cfg, **TRAIN_VARIANTS[variant])
-        torch.manual_seed(0)
+        torch.manual_seed(0)  # every variant starts from the same weights
         net = new_embedding_net(net_cfg, cfg, device)
+        models[variant] = compiled(net, COMPILED.get(variant))
         runs[variant] = (cfg, net, torch.optim.AdamW(net.parameters(), lr=cfg.lr), [], [])
 
-    def step(cfg, net, opt, i, batch=None):
-        loss = step_loss(net, source, cfg, i, device, batch)
+    def step(cfg, net, opt, i, batch=None, model=None, keep_grads=None):
+        loss = step_loss(net if model is None else model, source, cfg, i, device, batch)
         opt.zero_grad()
         loss.backward()
+        if keep_grads is not None:
+            grads[keep_grads] = torch.cat([p.grad.detach().float().flatten() for p in net.parameters()
+                                           if p.grad is not None])
         opt.step()
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
     for i in range(steps + 1):
-        for cfg, net, opt, wall, cpu in runs.values():
+        for variant, (cfg, net, opt, wall, cpu) in runs.items():
             t, c = time.perf_counter(), time.process_time()
-            step(cfg, net, opt, i)
-            if i > 0:  # round 0 warms up
+            step(cfg, net, opt, i, model=models[variant], keep_grads=variant if i == 0 else None)
+            if i > 0:  # round 0 warms up (and compiles)
                 wall.append(time.perf_counter() - t)
                 cpu.append(time.process_time() - c)
+            else:
+                first_s[variant] = time.perf_counter() - t
     threads, extra = prefetch_threads(device), {}
     if threads:
         cfg, net, opt, wall, cpu = runs["fp32"][0], runs["fp32"][1], runs["fp32"][2], [], []
@@ -233,6 +249,10 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
                         "images_per_s": round(cfg.batch_size / t, 2), "steps_per_s": round(1 / t, 3),
                         "minutes_per_800_steps": round(800 * t / 60, 2),
                         "minutes_per_800_median_steps": round(800 * float(np.median(wall)) / 60, 2)}
+        if variant in first_s:
+            out[variant]["first_step_s"] = round(first_s[variant], 2)
+        if variant in COMPILED:
+            out[variant] |= {"compiled": COMPILED[variant], **gradient_agreement(grads[variant], grads["bf16"])}
     if extra:
         out["fp32_batches_ahead"] |= extra | {
             "minutes_per_800_steps_whole_run": round(800 * extra["run_s_per_step"] / 60, 2)}
@@ -240,6 +260,25 @@ def bench_training(net_cfg: NetConfig, train_cfg: TrainConfig, steps: int, devic
         t["speedup_vs_fp32"] = round(out["fp32"]["step_s"] / t["step_s"], 2)
         t["median_speedup_vs_fp32"] = round(out["fp32"]["step_median_s"] / t["step_median_s"], 2)
     return out
+
+
+def compiled(net: EmbeddingNet, part: str | None):
+    """What a training step calls: ``net`` itself, its stride-4 part compiled with torch.compile ("stride4"; the
+    float32 upsampling and normalisation of ``forward`` stay eager), or the whole network compiled ("whole")."""
+    if part is None:
+        return net
+    if part == "whole":
+        return torch.compile(net)
+    net.forward_stride4 = torch.compile(net.forward_stride4)
+    return net
+
+
+def gradient_agreement(grad: torch.Tensor, reference: torch.Tensor) -> dict:
+    """The first step's parameter gradients against the eager bf16 step's (same weights, same batch): cosine and
+    norm ratio (1 and 1 when they agree; a gradient of zeros gives 0 and 0)."""
+    norm = float(grad.norm() * reference.norm())
+    return {"grad_cosine_vs_bf16": round(float(grad @ reference) / norm, 4) if norm > 0 else 0.0,
+            "grad_norm_ratio_vs_bf16": round(float(grad.norm() / reference.norm()), 4)}
 
 
 def method_networks(paths: list[str]) -> dict[str, tuple[NetConfig, TrainConfig, bool, bool]]:
@@ -273,9 +312,10 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16, help="frames per batch for the batched network and clustering")
     ap.add_argument("--train-steps", type=int, default=3, help="timed training steps of each variant")
     ap.add_argument("--parts", default="inference,training", help="what to time: inference, training or both")
-    ap.add_argument("--variants", default=",".join(TRAIN_VARIANTS),
+    ap.add_argument("--variants", default=",".join(DEFAULT_VARIANTS),
                     help=f"training variants to time, fp32 among them (of {', '.join(TRAIN_VARIANTS)}; bf16 is "
-                         f"emulated and 10× slower on a CPU without AVX512-BF16 or AMX)")
+                         f"emulated and 10× slower on a CPU without AVX512-BF16 or AMX; the compiled ones need "
+                         f"bf16 beside them and compile for a minute or so)")
     ap.add_argument("--method-config", action="append", default=[], metavar="YAML",
                     help="time the network as an embedding method's config file sets it, instead of the presets")
     ap.add_argument("--before", type=Path, help="an earlier run's JSON, kept under 'before'")
@@ -289,8 +329,10 @@ def main() -> None:
     if not args.parts or not args.parts <= {"inference", "training"}:
         ap.error(f"--parts: inference, training or both, got {','.join(sorted(args.parts))}")
     args.variants = tuple(args.variants.split(","))
-    if "fp32" not in args.variants or not set(args.variants) <= set(TRAIN_VARIANTS):
-        ap.error(f"--variants: fp32 and any of {', '.join(TRAIN_VARIANTS)}, got {','.join(args.variants)}")
+    if "fp32" not in args.variants or not set(args.variants) <= set(TRAIN_VARIANTS) or \
+            (set(args.variants) & set(COMPILED) and "bf16" not in args.variants):
+        ap.error(f"--variants: fp32 and any of {', '.join(TRAIN_VARIANTS)} (bf16 with a compiled one), "
+                 f"got {','.join(args.variants)}")
     load_at_start = os.getloadavg()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)

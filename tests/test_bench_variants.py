@@ -3,6 +3,8 @@ import importlib
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
+import torch
 import yaml
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
@@ -17,7 +19,20 @@ def test_each_variant_overrides_a_bf16_method_config(tmp_path, monkeypatch):
     assert (train_cfg.channels_last, train_cfg.precision) == (True, "bf16")
     variants = {name: replace(train_cfg, **v) for name, v in bench.TRAIN_VARIANTS.items()}
     got = {name: (cfg.channels_last, cfg.precision) for name, cfg in variants.items()}
-    assert got == {"fp32": (False, "fp32"), "channels_last": (True, "fp32"), "bf16": (True, "bf16")}
+    assert got == {"fp32": (False, "fp32"), "channels_last": (True, "fp32"), "bf16": (True, "bf16"),
+                   "compile": (True, "bf16"), "compile_whole": (True, "bf16")}
+
+
+def test_gradient_agreement_tells_a_zero_gradient_from_a_rounded_one(monkeypatch):
+    """A compiled step is checked against the eager one: a rounding-level difference reads about 1, a gradient of
+    zeros (what compiling the whole network gives in torch 2.13 on the CPU) 0, a reversed one −1."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    bench = importlib.import_module("bench_inference")
+    ref = torch.tensor([3.0, -4.0, 0.0, 12.0])
+    assert bench.gradient_agreement(ref * 1.001 + 1e-4, ref)["grad_cosine_vs_bf16"] == pytest.approx(1, abs=1e-4)
+    assert bench.gradient_agreement(torch.zeros(4), ref) == {"grad_cosine_vs_bf16": 0.0,
+                                                             "grad_norm_ratio_vs_bf16": 0.0}
+    assert bench.gradient_agreement(-2 * ref, ref) == {"grad_cosine_vs_bf16": -1.0, "grad_norm_ratio_vs_bf16": 2.0}
 
 
 def test_the_training_bench_times_only_the_variants_asked_for(monkeypatch):
