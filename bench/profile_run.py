@@ -7,7 +7,8 @@ pruning with registration).
 RUN_DIR is a ``scripts/benchmark.sh`` run folder. Read from it:
 
 - ``timings.tsv``: a row per step (name, wall s; CPU s and peak MB where the step wrapper recorded them), and
-  ``total``, the wall time of the invocation that finished the run (a resumed run counts only its last part);
+  ``total``, the wall time of the invocation that finished the run (a resumed run counts only its last part, so
+  the JSON also sums the steps' wall times, every attempt of each, as ``steps_wall_sum_s``);
 - ``results/scores``: per fold, ``fit_s``, and inference and scoring ms per frame times the fold's test frames;
 - ``results/work``: the stage files. Reconstruction and over-segmentation timings per video (``report.json``),
   every network's ``training_log.json`` (φ1 under ``_stages/*/phi1``, the methods' own under their fold's
@@ -109,8 +110,9 @@ def main() -> int:
         m = methods.get(s["step"], {})
         print(_row([s["step"], s["wall_s"], s["cpu_s"], s["peak_mb"], m.get("fit_s"), m.get("inference_s"),
                     m.get("scoring_s")]))
+    steps_sum = sum(s["wall_s"] or 0 for s in steps)
     print(f"total wall: {total if total is not None else 'not recorded'} s; sum of step walls "
-          f"{sum(s['wall_s'] or 0 for s in steps):.0f} s (the jobs run two at a time)")
+          f"{steps_sum:.0f} s (the jobs run two at a time)")
     rec, ovs = stages["reconstruction"], stages["overseg"]
     print(f"reconstruction: {rec['videos']} videos, {rec.get('total_s', 0):.0f} s; over-segmentation: "
           f"{ovs.get('overseg_s', 0) + ovs.get('graph_s', 0) + ovs.get('maps_s', 0):.0f} s "
@@ -118,7 +120,8 @@ def main() -> int:
     print(f"network training: {sum(t['seconds'] or 0 for t in stages['training']):.0f} s in {len(stages['training'])} "
           f"runs; pseudo stages: {len(stages['pseudo'])}")
     write_result(args.out, {"what": "where a scripts/benchmark.sh run's time goes (bench/profile_run.py)",
-                            "run": str(args.run.resolve()), "total_wall_s": total, "steps": steps,
+                            "run": str(args.run.resolve()), "total_wall_s": total,
+                            "steps_wall_sum_s": steps_sum, "steps": steps,
                             "methods": methods, "stages": stages})
     return 0
 
