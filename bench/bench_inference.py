@@ -68,7 +68,7 @@ TRAIN_VARIANTS = {"fp32": {"channels_last": False, "precision": "fp32"},
 # bf16 training with torch.compile (inductor), timed beside "bf16", whose gradients they are checked against: the
 # network up to its stride-4 embeddings compiled, the float32 upsampling and normalisation eager ("compile"), or the
 # whole network ("compile_whole": in torch 2.13 on the CPU every parameter's gradient comes out zero, a fault of
-# inductor with the autocast-disabled block inside EmbeddingNet.forward; aot_eager is right).
+# inductor when the stride-4 network, the upsampling and the normalisation are one graph; aot_eager is right).
 COMPILED = {"compile": "stride4", "compile_whole": "whole"}
 DEFAULT_VARIANTS = ("fp32", "channels_last", "bf16")
 
